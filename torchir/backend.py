@@ -1,0 +1,150 @@
+"""Mitsuba variant choice and the LLVM check: the one place that touches ``mi.set_variant``.
+
+``auto`` picks ``cuda_ad_rgb`` when Dr.Jit's CUDA backend works, else ``llvm_ad_rgb``. The
+environment variable ``TORCHIR_VARIANT`` overrides ``auto``. Dr.Jit 1.5's LLVM backend needs
+LLVM >= 16: with an older LLVM the first kernel *aborts the process*, so the version is checked
+before any kernel runs and a :class:`LLVMError` says how to fix it.
+
+Example:
+    >>> import torchir
+    >>> torchir.backend.set_variant("auto")
+    'llvm_ad_rgb'
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+
+ENV_VARIANT = "TORCHIR_VARIANT"
+MIN_LLVM_VERSION = (16, 0, 0)
+
+_FIX_LLVM = (
+    "Fix: install LLVM >= 16, e.g. `apt-get install libllvm19` on Debian/Ubuntu (torchir's "
+    "`scripts/install.sh` does this), or point DRJIT_LIBLLVM_PATH at a libLLVM.so of version >= 16. "
+    "On a machine with an NVIDIA GPU, `set_variant('cuda_ad_rgb')` avoids LLVM altogether."
+)
+
+_variant: str | None = None
+
+
+class LLVMError(RuntimeError):
+    """Dr.Jit's LLVM backend is missing or too old to run torchir's kernels."""
+
+
+def llvm_version() -> tuple[int, int, int] | None:
+    """The LLVM version Dr.Jit loaded, or ``None`` when it found no LLVM library."""
+    version = tuple(int(v) for v in dr.detail.llvm_version())
+    return None if version[0] < 0 else version  # Dr.Jit reports (-1, -1, -1) when none loads
+
+
+def check_llvm() -> tuple[int, int, int]:
+    """Raise :class:`LLVMError` unless Dr.Jit has LLVM >= 16; return the version otherwise."""
+    version = llvm_version()
+    if version is None:
+        raise LLVMError(f"Dr.Jit could not load an LLVM library, so it cannot run on the CPU. {_FIX_LLVM}")
+    if version < MIN_LLVM_VERSION:
+        found = ".".join(map(str, version))
+        raise LLVMError(
+            f"Dr.Jit found LLVM {found}, but Dr.Jit 1.5 needs LLVM >= 16 (older versions abort with "
+            f"'LLVM ERROR: Cannot select ... fminimum'). {_FIX_LLVM}"
+        )
+    return version
+
+
+def _auto_variant() -> str:
+    requested = os.environ.get(ENV_VARIANT, "").strip()
+    if requested and requested != "auto":
+        return requested
+    return "cuda_ad_rgb" if dr.has_backend(dr.JitBackend.CUDA) else "llvm_ad_rgb"
+
+
+def set_variant(name: str = "auto") -> str:
+    """Select the Mitsuba variant torchir renders with; returns the variant set.
+
+    Args:
+        name: ``"auto"`` (``$TORCHIR_VARIANT`` if set, else CUDA when it works, else LLVM) or an
+            explicit differentiable variant such as ``"llvm_ad_rgb"`` or ``"cuda_ad_rgb"``.
+
+    Raises:
+        ValueError: the variant is unknown or not differentiable (torchir needs ``*_ad_*``).
+        LLVMError: an LLVM variant was asked for and LLVM >= 16 is not available.
+    """
+    global _variant
+    chosen = _auto_variant() if name == "auto" else name
+    if chosen not in mi.variants():
+        raise ValueError(f"unknown Mitsuba variant {chosen!r}; available: {', '.join(mi.variants())}")
+    if "_ad_" not in chosen:
+        raise ValueError(f"variant {chosen!r} is not differentiable; torchir needs an '*_ad_*' variant")
+    if chosen.startswith("llvm"):
+        check_llvm()
+    elif chosen.startswith("cuda") and not dr.has_backend(dr.JitBackend.CUDA):
+        raise RuntimeError(f"variant {chosen!r} needs a working CUDA driver and GPU; none was found")
+    mi.set_variant(chosen)
+    _variant = chosen
+    return chosen
+
+
+def variant() -> str:
+    """The active variant; selects ``auto`` on first use."""
+    if _variant is None or mi.variant() != _variant:
+        return set_variant("auto" if _variant is None else _variant)
+    return _variant
+
+
+def device() -> str:
+    """The torch device whose tensors the active variant exchanges without copies."""
+    return "cuda" if variant().startswith("cuda") else "cpu"
+
+
+def describe() -> str:
+    """One line for logs: variant, LLVM version, Mitsuba and Dr.Jit versions."""
+    llvm = llvm_version()
+    llvm_text = ".".join(map(str, llvm)) if llvm else "none"
+    return f"variant={variant()} llvm={llvm_text} mitsuba={mi.__version__} drjit={dr.__version__}"
+
+
+@dataclass
+class KernelStats:
+    """What Dr.Jit launched inside a :class:`count_kernels` block."""
+
+    launched: int = 0  # JIT kernels launched
+    compiled: int = 0  # of those, compiled from scratch (neither in memory nor on disk)
+    cache_misses: int = 0  # of those, not found in the in-memory kernel cache
+    execution_time: float = 0.0  # seconds spent executing kernels (as Dr.Jit measures it)
+    hashes: list[str] = field(default_factory=list)  # hashes of the compiled kernels
+
+
+class count_kernels:
+    """Context manager counting Dr.Jit kernel launches and compilations.
+
+    Example:
+        >>> with torchir.backend.count_kernels() as stats:
+        ...     img = render(scene, params, spp=4, seed=1)
+        >>> stats.compiled
+        0
+    """
+
+    def __enter__(self) -> KernelStats:
+        self._previous = dr.flag(dr.JitFlag.KernelHistory)
+        dr.sync_thread()
+        dr.kernel_history()  # drain what came before
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        self.stats = KernelStats()
+        return self.stats
+
+    def __exit__(self, *exc) -> None:
+        dr.sync_thread()
+        for entry in dr.kernel_history():
+            if entry["type"] != dr.KernelType.JIT:
+                continue
+            self.stats.launched += 1
+            self.stats.execution_time += float(entry.get("execution_time", 0.0)) * 1e-3
+            if not entry.get("cache_hit", 0):
+                self.stats.cache_misses += 1
+                if not entry.get("cache_disk", 0):
+                    self.stats.compiled += 1
+                    self.stats.hashes.append(str(entry.get("hash", "")))
+        dr.set_flag(dr.JitFlag.KernelHistory, self._previous)

@@ -1,0 +1,5 @@
+"""torch autograd Functions around Dr.Jit renders: the only torch/Dr.Jit boundary in torchir."""
+from .render import render
+from .render_pixels import render_pixels
+
+__all__ = ["render", "render_pixels"]

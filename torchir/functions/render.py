@@ -1,0 +1,102 @@
+"""``render``: a full Mitsuba render as a torch autograd Function."""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+import mitsuba as mi
+import torch
+
+from ..scene import Scene
+from . import _args
+from ._bound_op import BoundRenderOp
+
+__all__ = ["render"]
+
+
+@dataclass(frozen=True)
+class _RenderSettings:
+    sensor: int
+    spp: int
+    seed: int
+    spp_grad: int
+    seed_grad: int
+
+
+class _RenderOp(BoundRenderOp):
+    """Primal: ``integrator.render``; adjoint: ``integrator.render_backward`` (PRB replay)."""
+
+    def primal(self) -> mi.TensorXf:
+        s: _RenderSettings = self.settings
+        scene = self.scene
+        image = scene.integrator.render(
+            scene.mi_scene, scene.sensor(s.sensor), seed=s.seed, spp=s.spp, develop=True, evaluate=False
+        )
+        # As Mitsuba's own op: re-seed the sensor's sampler so its state does not keep the
+        # rendering loop alive.
+        scene.sensor(s.sensor).sampler().seed(0, 1)
+        return image
+
+    def adjoint(self, grad_out: mi.TensorXf) -> None:
+        s: _RenderSettings = self.settings
+        scene = self.scene
+        scene.integrator.render_backward(
+            scene.mi_scene, self.fresh, grad_out, scene.sensor(s.sensor), seed=s.seed_grad, spp=s.spp_grad
+        )
+
+
+@dr.wrap(source="torch", target="drjit")
+def _render_drjit(scene: Scene, values: dict, grad_names: frozenset, settings: _RenderSettings):
+    native = {name: scene.to_drjit(name, value) for name, value in values.items()}
+    return dr.custom(_RenderOp, scene, native, grad_names, settings)
+
+
+def render(
+    scene: Scene,
+    params: Mapping[str, torch.Tensor] | None = None,
+    spp: int = 4,
+    seed: int = 0,
+    sensor: int = 0,
+    spp_grad: int | None = None,
+    seed_grad: int | None = None,
+) -> torch.Tensor:
+    """Render ``scene`` with ``params`` bound, differentiably, as a torch tensor.
+
+    The image is differentiable w.r.t. every tensor of ``params`` that requires grad (and only
+    those: the others are bound as constants, so Dr.Jit does not track them). Parameters not in
+    ``params`` keep their loaded value. The backward pass replays paths with ``seed_grad`` and
+    ``spp_grad`` samples (Mitsuba's path replay) and always uses the parameter values of *this*
+    render, even when other renders ran before it.
+
+    Args:
+        scene: a :class:`torchir.Scene`.
+        params: ``{Mitsuba key: float32 tensor}`` in the shapes of :mod:`torchir.scene`
+            (a texture is ``(H, W, C)``).
+        spp: samples per pixel of the primal image, >= 1.
+        seed: seed of the primal image; a fresh seed per step gives independent images.
+        sensor: index of the sensor to render from.
+        spp_grad: samples per pixel of the gradient pass (default: ``spp``).
+        seed_grad: seed of the gradient pass (default: a hash of ``seed``; must differ from it,
+            so that the gradient is independent of the image noise).
+
+    Returns:
+        ``(C, H, W)`` float32 linear radiance (C = 3 for RGB films).
+
+    Example:
+        >>> scene = torchir.Scene.builtin("cbox", resolution=32)
+        >>> red = scene.get("red.reflectance.value").requires_grad_()
+        >>> img = render(scene, {"red.reflectance.value": red}, spp=4, seed=0)
+        >>> img.mean().backward(); red.grad.shape
+        torch.Size([3])
+    """
+    scene = _args.check_scene(scene)
+    spp = _args.check_count("spp", spp)
+    spp_grad = spp if spp_grad is None else _args.check_count("spp_grad", spp_grad)
+    seed, seed_grad = _args.seeds(seed, seed_grad)
+    scene.sensor(sensor)
+    values, grad_names = _args.split_params(scene, params)
+    settings = _RenderSettings(sensor=sensor, spp=spp, seed=seed, spp_grad=spp_grad, seed_grad=seed_grad)
+    image = _render_drjit(scene, values, grad_names, settings)  # (H, W, C)
+    return image.permute(2, 0, 1)

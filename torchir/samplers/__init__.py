@@ -1,0 +1,1 @@
+"""Stateful samplers (adaptive pixel sampling, ReSTIR reservoirs). Filled by their issues."""

@@ -1,0 +1,364 @@
+"""Scene: load a Mitsuba 3 scene, list and read its parameters, bind torch values to it.
+
+Parameter tensors keep Mitsuba's shapes, with vectors as a trailing axis:
+
+=========================================  ====================  ===========================
+Mitsuba value                              torch shape           example
+=========================================  ====================  ===========================
+``TensorXf`` (bitmap texture, grid)        its own shape         ``(H, W, C)`` texture
+``Float`` of width n (flat arrays)         ``(n,)``              ``vertex_positions``: (3V,)
+``Color3f``/``Point3f``/... of width 1     ``(3,)``              ``red.reflectance.value``
+``Color3f``/``Point3f``/... of width n     ``(n, 3)``
+=========================================  ====================  ===========================
+
+A render binds the values it is given for its own duration; parameters it is not given keep
+the value the scene was loaded with. Binding is exact: the render Functions re-bind their
+own values before their backward pass, so interleaved renders differentiate correctly.
+"""
+from __future__ import annotations
+
+import difflib
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import drjit as dr
+import mitsuba as mi
+import torch
+
+from . import backend
+
+__all__ = ["Scene", "ParameterInfo"]
+
+
+@dataclass(frozen=True)
+class ParameterInfo:
+    """What torch needs to know about one Mitsuba parameter."""
+
+    name: str
+    type_name: str  # Dr.Jit/Python type of the value, e.g. "TensorXf", "Color3f"
+    shape: tuple[int, ...]  # torch-side shape (see the module docstring)
+    bindable: bool  # can be given a torch tensor (float arrays and tensors)
+    differentiable: bool  # Mitsuba marks it differentiable
+    discontinuous: bool  # moving it moves visibility edges (needs a projective integrator)
+
+
+# Keys whose change moves visibility edges. (Mitsuba also flags BSDF roughness "discontinuous",
+# for its sampling, which prb handles.)
+_GEOMETRY_KEYS = frozenset({"vertex_positions", "to_world", "center", "radius"})
+
+
+def _is_vector_array(value: Any) -> bool:
+    """A dynamic Dr.Jit array of fixed-size float vectors (Color3f, Point3f, Vector2f, ...)."""
+    return (
+        dr.is_array_v(value)
+        and dr.depth_v(value) == 2
+        and dr.size_v(value) != dr.Dynamic
+        and dr.is_dynamic_v(value)
+        and dr.type_v(value) == dr.VarType.Float32
+        and not dr.is_matrix_v(value)
+    )
+
+
+def _is_flat_float(value: Any) -> bool:
+    return (
+        dr.is_array_v(value)
+        and dr.depth_v(value) == 1
+        and dr.is_dynamic_v(value)
+        and dr.type_v(value) == dr.VarType.Float32
+        and not dr.is_tensor_v(value)
+    )
+
+
+def _torch_shape(value: Any) -> tuple[tuple[int, ...], bool]:
+    """(torch shape, bindable) of a Mitsuba parameter value."""
+    if dr.is_tensor_v(value):
+        return tuple(value.shape), dr.type_v(value) == dr.VarType.Float32
+    if _is_flat_float(value):
+        return (dr.width(value),), True
+    if _is_vector_array(value):
+        n, k = dr.width(value), dr.size_v(value)
+        return ((k,) if n == 1 else (n, k)), True
+    if isinstance(value, (int, float, bool)):
+        return (), False
+    try:
+        import numpy as np
+
+        return tuple(np.array(value).shape), False
+    except Exception:  # noqa: BLE001 - some Mitsuba values have no array form
+        return (), False
+
+
+def _same_layout(got: tuple[int, ...], expected: tuple[int, ...]) -> bool:
+    """Shapes match, up to leading/trailing singleton axes ((3,) vs (1, 3), () vs (1,))."""
+    squeeze = lambda s: tuple(d for d in s if d != 1)  # noqa: E731
+    return got == expected or (squeeze(got) == squeeze(expected) and _numel(got) == _numel(expected))
+
+
+def _numel(shape: tuple[int, ...]) -> int:
+    n = 1
+    for d in shape:
+        n *= d
+    return n
+
+
+class Scene:
+    """A Mitsuba 3 scene that torch code renders and differentiates.
+
+    Build one with :meth:`builtin`, :meth:`from_file` or :meth:`from_dict`.
+
+    Example:
+        >>> scene = Scene.builtin("cbox", resolution=32)
+        >>> scene.resolution, scene.sensor_count
+        ((32, 32), 1)
+        >>> scene.get("red.reflectance.value").shape
+        torch.Size([3])
+    """
+
+    def __init__(self, mi_scene: mi.Scene, *, name: str | None = None, description: str = "") -> None:
+        if not isinstance(mi_scene, mi.Scene):
+            raise TypeError(f"expected a mitsuba Scene, got {type(mi_scene).__name__}")
+        self.mi_scene = mi_scene
+        self.name = name
+        self.description = description
+        self.params = mi.traverse(mi_scene)
+        self._info: dict[str, ParameterInfo] = {}
+        self._base: dict[str, Any] = {}  # load-time values of the parameters a render overrode
+        self._overridden: set[str] = set()
+        self._owner: object | None = None  # the render op whose grad-enabled values are bound
+        self._warned: set[str] = set()
+
+    # ----------------------------------------------------------------------------- loading
+    @classmethod
+    def builtin(cls, name: str, resolution: int | tuple[int, int] | None = None, **options: Any) -> Scene:
+        """A built-in procedural scene (see :func:`torchir.scenes.available`).
+
+        Args:
+            name: scene name, e.g. ``"cbox"``.
+            resolution: ``H`` (square) or ``(H, W)``; each scene has a small default.
+            options: scene-specific options (documented on each scene's builder).
+        """
+        from . import scenes
+
+        entry = scenes.get(name)
+        backend.variant()
+        scene_dict = entry.build(resolution=resolution, **options)
+        return cls(mi.load_dict(scene_dict, optimize=False), name=name, description=entry.description)
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike, optimize: bool = False, **scene_args: Any) -> Scene:
+        """Load a Mitsuba 3 XML scene file.
+
+        Args:
+            path: the ``.xml`` file.
+            optimize: let Mitsuba merge shapes (off by default so every shape keeps its own,
+                addressable parameters).
+            scene_args: ``$name`` substitutions of the XML file.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"scene file not found: {str(path)!r} (resolved to {path.resolve()})")
+        backend.variant()
+        return cls(mi.load_file(str(path), optimize=optimize, **scene_args), name=path.stem)
+
+    @classmethod
+    def from_dict(cls, scene_dict: Mapping[str, Any], optimize: bool = False) -> Scene:
+        """Load a Mitsuba 3 scene dictionary (``{"type": "scene", ...}``)."""
+        if not isinstance(scene_dict, Mapping) or scene_dict.get("type") != "scene":
+            raise ValueError("expected a Mitsuba scene dict with 'type': 'scene'")
+        backend.variant()
+        return cls(mi.load_dict(dict(scene_dict), optimize=optimize))
+
+    # --------------------------------------------------------------------------- queries
+    @property
+    def resolution(self) -> tuple[int, int]:
+        """``(H, W)`` of sensor 0."""
+        return self.sensor_resolution(0)
+
+    def sensor_resolution(self, sensor: int = 0) -> tuple[int, int]:
+        """``(H, W)`` of the film crop of sensor ``sensor``."""
+        w, h = self.sensor(sensor).film().crop_size()
+        return int(h), int(w)
+
+    @property
+    def sensor_count(self) -> int:
+        return len(self.mi_scene.sensors())
+
+    def sensor(self, index: int) -> mi.Sensor:
+        """Sensor ``index``, with a clear error when out of range."""
+        if isinstance(index, bool) or not isinstance(index, int):
+            raise TypeError(f"sensor must be an int index, got {type(index).__name__}")
+        if not 0 <= index < self.sensor_count:
+            raise IndexError(f"sensor {index} out of range: the scene has {self.sensor_count} sensor(s)")
+        return self.mi_scene.sensors()[index]
+
+    @property
+    def integrator(self) -> mi.Integrator:
+        return self.mi_scene.integrator()
+
+    def parameter_names(self, differentiable_only: bool = False) -> list[str]:
+        """Mitsuba keys of the scene's parameters (``differentiable_only``: those Mitsuba
+        marks differentiable and torch can bind)."""
+        names = list(self.params.keys())
+        if differentiable_only:
+            names = [n for n in names if self.info(n).differentiable and self.info(n).bindable]
+        return names
+
+    def info(self, name: str) -> ParameterInfo:
+        """Type, torch shape and flags of parameter ``name``."""
+        self._require_name(name)
+        if name not in self._info:
+            value = self._base.get(name, self.params[name])
+            shape, bindable = _torch_shape(value)
+            flags = self.params.flags(name)
+            self._info[name] = ParameterInfo(
+                name=name,
+                type_name=type(value).__name__,
+                shape=shape,
+                bindable=bindable,
+                differentiable=not flags & int(mi.ParamFlags.NonDifferentiable),
+                discontinuous=bool(flags & int(mi.ParamFlags.Discontinuous)),
+            )
+        return self._info[name]
+
+    def get(self, name: str) -> torch.Tensor:
+        """A torch copy of parameter ``name`` as loaded (shape as in the module docstring)."""
+        info = self.info(name)
+        value = self._base.get(name, self.params[name])
+        if dr.is_tensor_v(value) or _is_flat_float(value):
+            out = value.torch()
+        elif _is_vector_array(value):
+            out = dr.ravel(value).torch()
+        else:
+            import numpy as np
+
+            out = torch.as_tensor(np.array(value))
+        return out.detach().clone().reshape(info.shape)
+
+    def __repr__(self) -> str:
+        h, w = self.resolution
+        return f"Scene(name={self.name!r}, resolution=({h}, {w}), sensors={self.sensor_count})"
+
+    # -------------------------------------------------------------- validation (public API)
+    def _require_name(self, name: str) -> None:
+        if not isinstance(name, str):
+            raise TypeError(f"parameter names are strings, got {type(name).__name__}")
+        if name not in self.params:
+            close = difflib.get_close_matches(name, list(self.params.keys()), n=3, cutoff=0.5)
+            hint = f" Did you mean {', '.join(repr(c) for c in close)}?" if close else ""
+            raise KeyError(
+                f"unknown scene parameter {name!r}.{hint} "
+                f"(scene.parameter_names() lists all {len(self.params)} keys)"
+            )
+
+    def check_values(self, values: Mapping[str, torch.Tensor]) -> None:
+        """Validate torch values for :meth:`bind`: names, dtype, device, shape, finiteness."""
+        if not isinstance(values, Mapping):
+            raise TypeError(f"params must be a dict {{name: tensor}}, got {type(values).__name__}")
+        expected_device = torch.device(backend.device())
+        for name, tensor in values.items():
+            info = self.info(name)
+            if not isinstance(tensor, torch.Tensor):
+                raise TypeError(f"params[{name!r}] must be a torch.Tensor, got {type(tensor).__name__}")
+            if not info.bindable:
+                raise TypeError(
+                    f"parameter {name!r} has type {info.type_name}, which torchir cannot bind from "
+                    f"a tensor (supported: float textures/tensors, float arrays, colours, points, vectors)"
+                )
+            if tensor.dtype != torch.float32:
+                raise TypeError(
+                    f"params[{name!r}] has dtype {tensor.dtype}; the renderer computes in float32: "
+                    f"pass tensor.float()"
+                )
+            if tensor.device.type != expected_device.type:
+                raise ValueError(
+                    f"params[{name!r}] is on {tensor.device}, but variant {backend.variant()!r} "
+                    f"renders on {expected_device.type}: move it with .to({expected_device.type!r})"
+                )
+            if not _same_layout(tuple(tensor.shape), info.shape):
+                hint = " (Mitsuba's (H, W, C) layout, not (C, H, W))" if len(info.shape) == 3 else ""
+                raise ValueError(
+                    f"params[{name!r}] has shape {tuple(tensor.shape)}, expected {info.shape}{hint}"
+                )
+            if tensor.requires_grad and not info.differentiable:
+                raise ValueError(
+                    f"parameter {name!r} is marked non-differentiable by Mitsuba (its integrators "
+                    f"produce no derivative for it, e.g. point-light positions under prb): detach it, "
+                    f"or optimise a differentiable parameterisation instead"
+                )
+            if not bool(torch.isfinite(tensor.detach()).all()):
+                bad = int((~torch.isfinite(tensor.detach())).sum())
+                raise ValueError(f"params[{name!r}] has {bad} NaN/Inf entries")
+            if tensor.requires_grad and info.discontinuous and name.rsplit(".", 1)[-1] in _GEOMETRY_KEYS:
+                self._warn_discontinuous(name)
+
+    def _warn_discontinuous(self, name: str) -> None:
+        integrator = type(self.integrator).__name__
+        if name in self._warned or "Projective" in integrator:
+            return
+        import warnings
+
+        self._warned.add(name)
+        warnings.warn(
+            f"{name!r} moves visibility edges, but the scene's integrator ({integrator}) "
+            f"differentiates only the interior term: gradients miss the boundary term. Use a "
+            f"projective integrator (prb_projective, direct_projective) for shape/pose parameters.",
+            stacklevel=4,
+        )
+
+    # ------------------------------------------------------------- binding (used by functions/)
+    def to_drjit(self, name: str, tensor: Any) -> Any:
+        """Convert a Dr.Jit tensor (from ``dr.wrap``) to parameter ``name``'s Mitsuba type.
+
+        Differentiable: gradients flow back to ``tensor``.
+        """
+        value = self._base.get(name, self.params[name])
+        if dr.is_tensor_v(value):
+            return tensor if tuple(tensor.shape) == tuple(value.shape) else type(value)(tensor.array, value.shape)
+        if _is_flat_float(value):
+            return tensor.array
+        return dr.unravel(type(value), tensor.array)
+
+    def bind(self, values: Mapping[str, Any], grad_names: frozenset[str] = frozenset(), owner: object = None) -> dict[str, Any]:
+        """Make the scene exactly "loaded scene + ``values``" and update it.
+
+        Parameters bound by an earlier call but absent from ``values`` go back to their loaded
+        values. Each name in ``grad_names`` gets a fresh grad-enabled Dr.Jit variable (a fresh
+        one, because Mitsuba does not refresh a scene for a variable that merely had its
+        gradient re-enabled); those variables are returned, and ``owner`` is remembered as the
+        op whose AD edges are live in the scene until :meth:`release` is called.
+
+        Args:
+            values: ``{name: Dr.Jit value}`` in the parameters' Mitsuba types (detached).
+            grad_names: the names to differentiate.
+            owner: an opaque token (the render op) for :meth:`owns_live_binding`.
+        """
+        params = self.params
+        for name in self._overridden - values.keys():
+            params[name] = self._base.pop(name)
+            params.set_dirty(name)
+        fresh: dict[str, Any] = {}
+        for name, value in values.items():
+            if name not in self._base:
+                self._base[name] = params[name]
+            value = type(value)(dr.detach(value))
+            if name in grad_names:
+                dr.enable_grad(value)
+                fresh[name] = value
+            params[name] = value
+            params.set_dirty(name)
+        params.update()
+        self._overridden = set(values)
+        self._owner = owner if fresh else None
+        return fresh
+
+    def owns_live_binding(self, owner: object) -> bool:
+        """Whether ``owner``'s grad-enabled values are bound with unused AD edges."""
+        return owner is not None and self._owner is owner
+
+    def release(self, owner: object) -> None:
+        """Mark ``owner``'s AD edges as consumed (a backward traversal clears them)."""
+        if self._owner is owner:
+            self._owner = None

@@ -1,0 +1,54 @@
+"""Built-in procedural scenes: no downloads, tiny by default, one module each.
+
+Every scene documents what it is for and which integrator and depth its light transport needs
+(model only what a scene requires: direct illumination where that suffices), and uses a box
+reconstruction filter so pixel-subset renders define the same pixels as full renders.
+
+Example:
+    >>> import torchir
+    >>> sorted(torchir.scenes.available())
+    ['cbox', 'glossy_ball', 'multiview', 'painting']
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from . import cbox, glossy_ball, multiview, painting
+
+__all__ = ["available", "get", "BuiltinScene"]
+
+
+@dataclass(frozen=True)
+class BuiltinScene:
+    name: str
+    description: str  # one line: what it is for, integrator and depth
+    build: Callable[..., dict[str, Any]]  # (resolution=None, **options) -> Mitsuba scene dict
+    parameters: tuple[str, ...]  # the keys its typical optimisation recovers
+
+
+_REGISTRY = {
+    entry.name: entry
+    for entry in (
+        BuiltinScene("cbox", cbox.DESCRIPTION, cbox.build, cbox.PARAMETERS),
+        BuiltinScene("painting", painting.DESCRIPTION, painting.build, painting.PARAMETERS),
+        BuiltinScene("glossy_ball", glossy_ball.DESCRIPTION, glossy_ball.build, glossy_ball.PARAMETERS),
+        BuiltinScene("multiview", multiview.DESCRIPTION, multiview.build, multiview.PARAMETERS),
+    )
+}
+
+
+def available() -> dict[str, str]:
+    """``{name: one-line description}`` of the built-in scenes."""
+    return {name: entry.description for name, entry in _REGISTRY.items()}
+
+
+def get(name: str) -> BuiltinScene:
+    """The registry entry of built-in scene ``name`` (``KeyError`` naming the choices)."""
+    if name not in _REGISTRY:
+        import difflib
+
+        close = difflib.get_close_matches(name, list(_REGISTRY), n=1)
+        hint = f" Did you mean {close[0]!r}?" if close else ""
+        raise KeyError(f"unknown built-in scene {name!r}.{hint} Available: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name]

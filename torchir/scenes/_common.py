@@ -1,0 +1,65 @@
+"""Pieces shared by the built-in scenes: resolution parsing, films, sensors, textures."""
+from __future__ import annotations
+
+from typing import Any
+
+import mitsuba as mi
+import numpy as np
+
+
+def resolution_hw(resolution: int | tuple[int, int] | None, default: int) -> tuple[int, int]:
+    """``(H, W)`` from an int (square), a pair, or ``None`` (the scene's default)."""
+    if resolution is None:
+        return default, default
+    if isinstance(resolution, int) and not isinstance(resolution, bool):
+        h = w = resolution
+    elif isinstance(resolution, (tuple, list)) and len(resolution) == 2:
+        h, w = (int(r) for r in resolution)
+    else:
+        raise ValueError(f"resolution must be an int or (H, W), got {resolution!r}")
+    if h < 1 or w < 1:
+        raise ValueError(f"resolution must be positive, got {(h, w)}")
+    return h, w
+
+
+def film(h: int, w: int) -> dict[str, Any]:
+    """An RGB float film with a box filter: a pixel is the mean radiance over its square."""
+    return {
+        "type": "hdrfilm",
+        "width": w,
+        "height": h,
+        "rfilter": {"type": "box"},
+        "pixel_format": "rgb",
+        "component_format": "float32",
+        "sample_border": False,
+    }
+
+
+def perspective(origin, target, up, fov: float, h: int, w: int, spp: int = 4) -> dict[str, Any]:
+    return {
+        "type": "perspective",
+        "fov": fov,
+        "fov_axis": "smaller",
+        "to_world": mi.ScalarTransform4f().look_at(origin=origin, target=target, up=up),
+        "sampler": {"type": "independent", "sample_count": spp},
+        "film": film(h, w),
+    }
+
+
+def bitmap(data: np.ndarray) -> dict[str, Any]:
+    """A raw (linear, unfiltered by sRGB) RGB bitmap texture from an (H, W, 3) array."""
+    return {
+        "type": "bitmap",
+        "raw": True,
+        "filter_type": "bilinear",
+        "data": mi.TensorXf(np.ascontiguousarray(data, dtype=np.float32)),
+    }
+
+
+def painting_texture(size: int) -> np.ndarray:
+    """A procedural (size, size, 3) albedo with blobs, stripes and flat regions, in [0.05, 0.9]."""
+    y, x = np.meshgrid(np.linspace(0, 1, size), np.linspace(0, 1, size), indexing="ij")
+    r = 0.45 + 0.4 * np.sin(6.0 * x + 1.0) * np.cos(4.0 * y)
+    g = 0.45 + 0.4 * np.exp(-((x - 0.3) ** 2 + (y - 0.65) ** 2) / 0.03) - 0.2 * (x > 0.7)
+    b = 0.3 + 0.5 * ((np.floor(8 * x) + np.floor(8 * y)) % 2) * (y < 0.4)
+    return np.clip(np.stack([r, g, b], -1), 0.05, 0.9).astype(np.float32)
