@@ -342,7 +342,8 @@ class Scene:
         fresh: dict[str, Any] = {}
         for name, value in values.items():
             if name not in self._base:
-                self._base[name] = params[name]
+                # A new Python object: SceneParameters assigns into the existing one in place.
+                self._base[name] = type(params[name])(params[name])
             value = type(value)(dr.detach(value))
             if name in grad_names:
                 dr.enable_grad(value)

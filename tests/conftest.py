@@ -1,0 +1,29 @@
+"""Shared fixtures: tiny scenes, built once per session so Dr.Jit's kernels are reused."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchir
+
+RES = 16  # every render test uses 16x16 so the kernels compile once
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _variant() -> str:
+    return torchir.backend.set_variant("auto")
+
+
+@pytest.fixture(scope="session")
+def cbox() -> torchir.Scene:
+    return torchir.Scene.builtin("cbox", resolution=RES)
+
+
+@pytest.fixture(scope="session")
+def painting() -> torchir.Scene:
+    return torchir.Scene.builtin("painting", resolution=RES, texture=8, hidden_lights=2)
+
+
+@pytest.fixture()
+def red(cbox) -> torch.Tensor:
+    return cbox.get("red.reflectance.value").requires_grad_()

@@ -1,0 +1,102 @@
+"""Variant choice, the LLVM check (a clear error, never an abort) and import order."""
+from __future__ import annotations
+
+import glob
+import os
+import subprocess
+import sys
+import textwrap
+
+import drjit as dr
+import pytest
+
+import torchir
+from torchir import backend
+
+RENDER_SNIPPET = """
+import torchir
+from torchir.functions import render
+scene = torchir.Scene.builtin("cbox", resolution=8)
+red = scene.get("red.reflectance.value").requires_grad_()
+render(scene, {"red.reflectance.value": red}, spp=2, seed=1).mean().backward()
+assert red.grad is not None and bool(red.grad.isfinite().all()) and float(red.grad.abs().sum()) > 0
+print("OK")
+"""
+
+
+def _run(code: str, **env: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        env={**os.environ, **env},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+@pytest.mark.skipif(dr.has_backend(dr.JitBackend.CUDA), reason="CUDA available: auto picks cuda")
+def test_auto_picks_llvm_without_cuda(monkeypatch):
+    monkeypatch.delenv(backend.ENV_VARIANT, raising=False)
+    assert backend.set_variant("auto") == "llvm_ad_rgb"
+    assert backend.device() == "cpu"
+
+
+def test_environment_variable_overrides_auto(monkeypatch):
+    monkeypatch.setenv(backend.ENV_VARIANT, "llvm_ad_rgb")
+    assert backend.set_variant("auto") == "llvm_ad_rgb"
+    monkeypatch.setenv(backend.ENV_VARIANT, "scalar_rgb")
+    with pytest.raises(ValueError, match="not differentiable"):
+        backend.set_variant("auto")
+    monkeypatch.delenv(backend.ENV_VARIANT)
+    backend.set_variant("auto")
+
+
+def test_unknown_variant_lists_choices():
+    with pytest.raises(ValueError, match="unknown Mitsuba variant 'llvm_ad_rbg'.*llvm_ad_rgb"):
+        backend.set_variant("llvm_ad_rbg")
+    assert backend.variant() == "llvm_ad_rgb"  # the failed call changed nothing
+
+
+def test_llvm_version_is_supported_here():
+    assert backend.check_llvm() >= backend.MIN_LLVM_VERSION
+    assert "llvm=" in backend.describe()
+
+
+OLD_LLVM = sorted(glob.glob("/usr/lib/x86_64-linux-gnu/libLLVM-1[45].so"))
+
+
+@pytest.mark.skipif(not OLD_LLVM, reason="no LLVM < 16 on this machine to test with")
+@pytest.mark.parametrize("library", OLD_LLVM)
+def test_old_llvm_gives_clear_error_not_abort(library):
+    result = _run(RENDER_SNIPPET, DRJIT_LIBLLVM_PATH=library)
+    assert result.returncode == 1, (result.returncode, result.stderr[-2000:])  # an exception, not SIGABRT
+    assert "torchir.backend.LLVMError" in result.stderr and "libllvm19" in result.stderr
+    # LLVM 15 loads (and would abort at the first kernel); Dr.Jit itself refuses LLVM 14.
+    expected = "needs LLVM >= 16" if "-15" in library else "could not load an LLVM library"
+    assert expected in result.stderr
+
+
+def test_missing_llvm_gives_clear_error():
+    result = _run(RENDER_SNIPPET, DRJIT_LIBLLVM_PATH="/nonexistent/libLLVM.so")
+    assert result.returncode == 1, (result.returncode, result.stderr[-2000:])
+    assert "could not load an LLVM library" in result.stderr
+
+
+@pytest.mark.parametrize("imports", ["import torch\nimport mitsuba\nimport drjit", "import mitsuba\nimport drjit\nimport torch"])
+def test_import_order_does_not_matter(imports):
+    result = _run(imports + "\n" + RENDER_SNIPPET)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.strip().endswith("OK")
+
+
+def test_count_kernels_sees_compilation_and_reuse():
+    import mitsuba as mi
+
+    x = mi.Float(1.0, 2.0, 3.0)
+    marker = float(hash(os.urandom(8)) % 1000) + 0.5  # a literal no kernel has seen yet
+    with backend.count_kernels() as first:
+        dr.eval(dr.sin(x) * marker)
+    with backend.count_kernels() as second:
+        dr.eval(dr.sin(x) * marker)
+    assert first.launched == 1 and first.cache_misses == 1
+    assert second.launched == 1 and second.cache_misses == 0 and second.compiled == 0

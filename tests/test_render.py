@@ -1,0 +1,201 @@
+"""render(): image and gradient against native Mitsuba and finite differences, the
+interleaving/double-render trap, kernel reuse, extremes and every bad-input error."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import pytest
+import torch
+
+import torchir
+from torchir.functions import render
+from torchir.testing import gradcheck
+
+from .conftest import RES
+
+KEY = "red.reflectance.value"
+
+
+def _weights(seed: int = 0) -> torch.Tensor:
+    return torch.rand(3, RES, RES, generator=torch.Generator().manual_seed(seed))
+
+
+def _grad(scene, value, seed, seed_grad=None, weights=None, spp=8):
+    x = value.detach().clone().requires_grad_()
+    img = render(scene, {KEY: x}, spp=spp, seed=seed, seed_grad=seed_grad)
+    (img * (_weights() if weights is None else weights)).sum().backward()
+    return x.grad
+
+
+def test_shape_dtype_and_layout(cbox):
+    img = render(cbox, spp=1, seed=0)
+    assert img.shape == (3, RES, RES) and img.dtype == torch.float32
+    assert bool(img.isfinite().all()) and float(img.min()) >= 0
+
+
+def test_equals_native_mitsuba_image_and_gradient():
+    """With the same seeds, torchir's op must reproduce mi.render + dr.backward exactly."""
+    ours = torchir.Scene.builtin("cbox", resolution=RES)
+    red = ours.get(KEY).requires_grad_()
+    img = render(ours, {KEY: red}, spp=8, seed=3, seed_grad=11)
+    w = _weights()
+    (img * w).sum().backward()
+
+    native = torchir.Scene.builtin("cbox", resolution=RES)
+    params = mi.traverse(native.mi_scene)
+    dr.enable_grad(params[KEY])
+    params.update()
+    ref = mi.render(native.mi_scene, params, spp=8, seed=3, seed_grad=11)
+    dr.backward(dr.sum(ref * mi.TensorXf(w.permute(1, 2, 0).contiguous().numpy()), axis=None))
+
+    assert torch.equal(img.detach(), ref.torch().permute(2, 0, 1))
+    torch.testing.assert_close(red.grad, dr.grad(params[KEY]).torch().reshape(3), rtol=1e-5, atol=1e-6)
+
+
+def test_gradient_matches_finite_differences_albedo(cbox, red):
+    target = render(cbox, {}, spp=64, seed=1000).detach() * 0.7
+
+    def loss(p, seed):
+        return ((render(cbox, p, spp=16, seed=seed) - target) ** 2).mean()
+
+    assert gradcheck(loss, {KEY: red}, seeds=range(12), directions=2)
+
+
+def test_gradient_matches_finite_differences_texture(painting):
+    key = "canvas.bsdf.reflectance.data"
+    tex = painting.get(key).requires_grad_()
+    w = _weights(1)
+
+    def loss(p, seed):
+        return (render(painting, p, spp=8, seed=seed) * w).mean()
+
+    assert gradcheck(loss, {key: tex}, seeds=range(8), directions=3)
+
+
+def test_interleaved_render_keeps_its_own_gradient(cbox):
+    """Render A, then render B with other values, then backward A: A's gradient must be the
+    one it gets alone (Mitsuba's op would replay B's scene)."""
+    a = cbox.get(KEY)
+    b = torch.tensor([0.05, 0.9, 0.1])
+    alone = _grad(cbox, a, seed=5)
+
+    xa, xb = a.clone().requires_grad_(), b.clone().requires_grad_()
+    img_a = render(cbox, {KEY: xa}, spp=8, seed=5)
+    img_b = render(cbox, {KEY: xb}, spp=8, seed=6)
+    (img_b * _weights()).sum().backward()  # B first: the scene still holds B's binding
+    (img_a * _weights()).sum().backward()
+    torch.testing.assert_close(xa.grad, alone, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(xb.grad, _grad(cbox, b, seed=6), rtol=1e-5, atol=1e-7)
+    assert not torch.allclose(xa.grad, xb.grad)  # the scenes really differed
+
+
+def test_double_render_before_one_backward_sums_both(cbox):
+    a = cbox.get(KEY)
+    g1, g2 = _grad(cbox, a, seed=7), _grad(cbox, a, seed=8)
+    x = a.clone().requires_grad_()
+    img1 = render(cbox, {KEY: x}, spp=8, seed=7)
+    img2 = render(cbox, {KEY: x}, spp=8, seed=8)
+    ((img1 + img2) * _weights()).sum().backward()
+    torch.testing.assert_close(x.grad, g1 + g2, rtol=1e-5, atol=1e-7)
+
+
+def test_unlisted_parameters_keep_their_loaded_value(cbox):
+    fresh = torchir.Scene.builtin("cbox", resolution=RES)
+    render(cbox, {KEY: torch.tensor([0.9, 0.0, 0.9]), "green.reflectance.value": torch.zeros(3)}, spp=2, seed=1)
+    assert torch.equal(render(cbox, {}, spp=4, seed=9), render(fresh, {}, spp=4, seed=9))
+
+
+def test_only_tensors_requiring_grad_are_differentiated(cbox):
+    green = cbox.get("green.reflectance.value")  # no grad
+    red = cbox.get(KEY).requires_grad_()
+    img = render(cbox, {KEY: red, "green.reflectance.value": green}, spp=4, seed=2)
+    img.mean().backward()
+    assert green.grad is None and red.grad is not None and float(red.grad.abs().sum()) > 0
+    with torch.no_grad():
+        assert not render(cbox, {KEY: red}, spp=1, seed=0).requires_grad
+
+
+def test_kernels_are_reused_across_steps(cbox):
+    """After warm-up, new seeds and new parameter values compile nothing."""
+    red = cbox.get(KEY).requires_grad_()
+    opt = torch.optim.Adam([red], lr=0.05)
+
+    def step(seed):
+        opt.zero_grad()
+        render(cbox, {KEY: red}, spp=4, seed=seed).mean().backward()
+        opt.step()
+
+    for seed in range(2):
+        step(seed)
+    with torchir.backend.count_kernels() as stats:
+        for seed in range(100, 104):
+            step(seed)
+    assert stats.launched > 0
+    assert stats.compiled == 0 and stats.cache_misses == 0, stats
+
+
+@pytest.mark.parametrize("radiance", [0.0, 1e6])
+def test_extreme_radiance_stays_finite(radiance):
+    scene = torchir.Scene.builtin("cbox", resolution=RES)
+    light = torch.full((3,), radiance)
+    red = scene.get(KEY).requires_grad_()
+    img = render(scene, {KEY: red, "light.emitter.radiance.value": light}, spp=1, seed=0)
+    img.mean().backward()
+    assert bool(img.isfinite().all()) and bool(red.grad.isfinite().all())
+    if radiance == 0.0:
+        assert float(img.detach().abs().max()) == 0.0 and float(red.grad.abs().max()) == 0.0
+    else:
+        assert float(img.detach().max()) > 1e3
+
+
+# ------------------------------------------------------------------------------ bad input
+@pytest.mark.parametrize(
+    ("params", "error", "match"),
+    [
+        ({"red.reflectance.valu": torch.zeros(3)}, KeyError, "Did you mean 'red.reflectance.value'"),
+        ({KEY: torch.zeros(4)}, ValueError, r"shape \(4,\), expected \(3,\)"),
+        ({KEY: torch.zeros(3, dtype=torch.float64)}, TypeError, "float32"),
+        ({KEY: torch.zeros(3, dtype=torch.int64)}, TypeError, "dtype"),
+        ({KEY: torch.tensor([0.5, float("nan"), 0.5])}, ValueError, "1 NaN/Inf"),
+        ({KEY: torch.tensor([0.5, float("inf"), 0.5])}, ValueError, "NaN/Inf"),
+        ({KEY: [0.5, 0.5, 0.5]}, TypeError, "torch.Tensor"),
+        ({"red-wall.to_world": torch.eye(4)}, TypeError, "cannot bind"),
+        ([KEY], TypeError, "dict"),
+    ],
+)
+def test_bad_params_raise_clear_errors(cbox, params, error, match):
+    with pytest.raises(error, match=match):
+        render(cbox, params, spp=1, seed=0)
+
+
+def test_texture_in_channel_first_layout_is_explained(painting):
+    with pytest.raises(ValueError, match=r"\(H, W, C\)"):
+        render(painting, {"canvas.bsdf.reflectance.data": torch.zeros(3, 8, 8)}, spp=1)
+
+
+def test_non_differentiable_parameter_with_grad(cbox):
+    ball = torchir.Scene.builtin("glossy_ball", resolution=8)
+    with pytest.raises(ValueError, match="non-differentiable"):
+        render(ball, {"light.position": ball.get("light.position").requires_grad_()}, spp=1)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"spp": 0}, ValueError, "spp must be >= 1"),
+        ({"spp": -3}, ValueError, "spp must be >= 1"),
+        ({"spp": 2.5}, TypeError, "spp must be an int"),
+        ({"spp_grad": 0}, ValueError, "spp_grad must be >= 1"),
+        ({"seed": -1}, ValueError, "seed must be in"),
+        ({"seed": 3, "seed_grad": 3}, ValueError, "must differ"),
+        ({"sensor": 1}, IndexError, "sensor 1 out of range"),
+    ],
+)
+def test_bad_settings_raise_clear_errors(cbox, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        render(cbox, {}, **{"spp": 1, **kwargs})
+
+
+def test_scene_must_be_a_torchir_scene(cbox):
+    with pytest.raises(TypeError, match="torchir.Scene"):
+        render(cbox.mi_scene, {}, spp=1)
