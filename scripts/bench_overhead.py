@@ -144,9 +144,7 @@ class TorchirLoop:
 
     def __init__(self, scene: torchir.Scene, key: str, target: torch.Tensor, spp: int, lr: float) -> None:
         self.scene, self.key, self.target, self.spp = scene, key, target, spp
-        # A plain leaf tensor, not an nn.Parameter: dr.wrap (Dr.Jit 1.5) recognises only objects
-        # whose type is exactly torch.Tensor, and passes a Parameter through unconverted.
-        self.param = torch.full_like(scene.get(key), INIT_VALUE).requires_grad_()
+        self.param = torch.nn.Parameter(torch.full_like(scene.get(key), INIT_VALUE))
         self.opt = torch.optim.Adam([self.param], lr=lr)
 
     def step(self, seed: int) -> None:

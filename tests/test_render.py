@@ -199,3 +199,58 @@ def test_bad_settings_raise_clear_errors(cbox, kwargs, error, match):
 def test_scene_must_be_a_torchir_scene(cbox):
     with pytest.raises(TypeError, match="torchir.Scene"):
         render(cbox.mi_scene, {}, spp=1)
+
+
+# ---------------------------------------------------------------------- frozen render passes
+def test_frozen_and_unfrozen_passes_agree_exactly():
+    from torchir.functions._passes import passes
+
+    w = _weights(2)
+    results = []
+    for frozen in (True, False):
+        torchir.backend.set_frozen_renders(frozen)
+        try:
+            scene = torchir.Scene.builtin("cbox", resolution=RES)
+            x = scene.get(KEY).requires_grad_()
+            images = []
+            for seed in range(3):  # record, then replay
+                img = render(scene, {KEY: x}, spp=4, seed=seed)
+                (img * w).sum().backward()
+                images.append(img.detach())
+            assert passes(scene).frozen is frozen
+            results.append((torch.stack(images), x.grad.clone()))
+        finally:
+            torchir.backend.set_frozen_renders(True)
+    assert torch.equal(results[0][0], results[1][0])
+    torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-6, atol=0)
+
+
+def test_warm_frozen_passes_do_not_retrace(cbox):
+    from torchir.functions._passes import passes
+
+    x = cbox.get(KEY).requires_grad_()
+    for seed in range(3):
+        render(cbox, {KEY: x * 0.9}, spp=4, seed=seed).mean().backward()
+    recordings = passes(cbox).recordings
+    for seed in range(10, 15):  # new seeds and new values
+        render(cbox, {KEY: x * (0.5 + seed / 30)}, spp=4, seed=seed).mean().backward()
+    assert passes(cbox).frozen and passes(cbox).recordings == recordings
+
+
+def test_projective_integrators_run_unfrozen():
+    from torchir.functions._passes import passes
+
+    scene = torchir.Scene.from_dict(
+        {"type": "scene", "integrator": {"type": "direct_projective"}, "sensor": {"type": "perspective"}, "s": {"type": "sphere"}}
+    )
+    assert not passes(scene).frozen
+
+
+def test_nn_parameter_inputs_get_gradients(cbox):
+    param = torch.nn.Parameter(cbox.get(KEY))
+    opt = torch.optim.Adam([param], lr=0.1)
+    render(cbox, {KEY: param}, spp=2, seed=0).mean().backward()
+    assert param.grad is not None and float(param.grad.abs().sum()) > 0
+    before = param.detach().clone()
+    opt.step()
+    assert not torch.equal(before, param.detach())

@@ -19,6 +19,7 @@ import drjit as dr
 import mitsuba as mi
 
 ENV_VARIANT = "TORCHIR_VARIANT"
+ENV_FREEZE = "TORCHIR_FREEZE"  # "0" turns frozen render passes off
 MIN_LLVM_VERSION = (16, 0, 0)
 
 _FIX_LLVM = (
@@ -28,6 +29,7 @@ _FIX_LLVM = (
 )
 
 _variant: str | None = None
+_freeze = os.environ.get(ENV_FREEZE, "1").strip() != "0"
 
 
 class LLVMError(RuntimeError):
@@ -92,6 +94,23 @@ def variant() -> str:
     if _variant is None or mi.variant() != _variant:
         return set_variant("auto" if _variant is None else _variant)
     return _variant
+
+
+def set_frozen_renders(enabled: bool) -> None:
+    """Run render passes as Dr.Jit frozen functions (``dr.freeze``; on by default).
+
+    A frozen pass replays its recorded kernels without re-tracing Python, which removes most
+    per-step overhead. Integrators that cannot be frozen (projective ones, custom Python
+    integrators) always run unfrozen. ``TORCHIR_FREEZE=0`` turns it off at start-up.
+    Affects scenes whose first render comes after the call.
+    """
+    global _freeze
+    _freeze = bool(enabled)
+
+
+def frozen_renders() -> bool:
+    """Whether new scenes' render passes are frozen."""
+    return _freeze
 
 
 def device() -> str:

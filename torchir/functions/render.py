@@ -12,6 +12,7 @@ import torch
 from ..scene import Scene
 from . import _args
 from ._bound_op import BoundRenderOp
+from ._passes import passes
 
 __all__ = ["render"]
 
@@ -26,25 +27,16 @@ class _RenderSettings:
 
 
 class _RenderOp(BoundRenderOp):
-    """Primal: ``integrator.render``; adjoint: ``integrator.render_backward`` (PRB replay)."""
+    """Primal: ``integrator.render``; adjoint: ``integrator.render_backward`` (path replay),
+    both through the scene's (frozen) :class:`~torchir.functions._passes.RenderPasses`."""
 
     def primal(self) -> mi.TensorXf:
         s: _RenderSettings = self.settings
-        scene = self.scene
-        image = scene.integrator.render(
-            scene.mi_scene, scene.sensor(s.sensor), seed=s.seed, spp=s.spp, develop=True, evaluate=False
-        )
-        # As Mitsuba's own op: re-seed the sensor's sampler so its state does not keep the
-        # rendering loop alive.
-        scene.sensor(s.sensor).sampler().seed(0, 1)
-        return image
+        return passes(self.scene).primal(s.sensor, s.seed, s.spp)
 
     def adjoint(self, grad_out: mi.TensorXf) -> None:
         s: _RenderSettings = self.settings
-        scene = self.scene
-        scene.integrator.render_backward(
-            scene.mi_scene, self.fresh, grad_out, scene.sensor(s.sensor), seed=s.seed_grad, spp=s.spp_grad
-        )
+        passes(self.scene).adjoint(s.sensor, grad_out, s.seed_grad, s.spp_grad, self.fresh)
 
 
 @dr.wrap(source="torch", target="drjit")

@@ -1,0 +1,88 @@
+"""The primal and adjoint passes of a full render, frozen with ``dr.freeze`` where possible.
+
+Tracing the integrator in Python costs about as much as running its kernels at small image
+sizes, and torch waits for both (it needs the image, then the gradient, as data). A frozen
+pass records its kernels once per configuration (sensor, spp, AD status of the bound values)
+and replays them with new inputs: new seeds (passed opaque) and new parameter values. Binding
+stays *outside* the frozen functions (binding inside crashed on replay), and gradients are
+read after the frozen adjoint returns (read inside, a texture's gradient came back as zero).
+"""
+from __future__ import annotations
+
+import warnings
+import weakref
+from typing import Any
+
+import drjit as dr
+import mitsuba as mi
+
+from .. import backend
+from ..scene import Scene
+
+_RECORDINGS_PER_PASS = 8  # LRU bound on cached recordings (one per sensor/spp configuration)
+
+
+def _primal(mi_scene: mi.Scene, sensor: int, seed: Any, spp: int) -> mi.TensorXf:
+    sensor_obj = mi_scene.sensors()[sensor]
+    image = mi_scene.integrator().render(mi_scene, sensor_obj, seed=seed, spp=spp, develop=True, evaluate=False)
+    # As Mitsuba's own render op: re-seed the sensor's sampler so it does not keep the loop alive.
+    sensor_obj.sampler().seed(0, 1)
+    return image
+
+
+def _adjoint(mi_scene: mi.Scene, sensor: int, grad_out: mi.TensorXf, seed: Any, spp: int, params: dict) -> None:
+    sensor_obj = mi_scene.sensors()[sensor]
+    mi_scene.integrator().render_backward(mi_scene, params, grad_out, sensor_obj, seed=seed, spp=spp)
+
+
+def _freezable(integrator: mi.Integrator) -> bool:
+    """Mitsuba's own path-replay integrators; not projective ones (Mitsuba refuses them inside
+    frozen functions) nor custom Python integrators (they may keep state across calls)."""
+    from mitsuba.python.ad.integrators.common import RBIntegrator
+
+    return isinstance(integrator, RBIntegrator) and type(integrator).__module__.startswith("mitsuba.")
+
+
+class RenderPasses:
+    """Primal and adjoint render passes of one scene (frozen when enabled and possible)."""
+
+    def __init__(self, scene: Scene) -> None:
+        self.scene = weakref.proxy(scene)
+        self.frozen = backend.frozen_renders() and _freezable(scene.integrator)
+        self._primal = dr.freeze(_primal, limit=_RECORDINGS_PER_PASS)
+        self._adjoint = dr.freeze(_adjoint, limit=_RECORDINGS_PER_PASS)
+
+    @property
+    def recordings(self) -> int:
+        """How many times the frozen passes were traced (stays constant once warm)."""
+        return self._primal.n_recordings + self._adjoint.n_recordings
+
+    def primal(self, sensor: int, seed: int, spp: int) -> mi.TensorXf:
+        if self.frozen:
+            try:
+                return self._primal(self.scene.mi_scene, sensor, dr.opaque(mi.UInt32, seed), spp)
+            except Exception as error:  # noqa: BLE001 - fall back, loudly, rather than fail the run
+                self._unfreeze(error)
+        return _primal(self.scene.mi_scene, sensor, seed, spp)
+
+    def adjoint(self, sensor: int, grad_out: mi.TensorXf, seed: int, spp: int, params: dict) -> None:
+        if self.frozen:
+            try:
+                return self._adjoint(self.scene.mi_scene, sensor, grad_out, dr.opaque(mi.UInt32, seed), spp, params)
+            except Exception as error:  # noqa: BLE001
+                self._unfreeze(error)
+        _adjoint(self.scene.mi_scene, sensor, grad_out, seed, spp, params)
+
+    def _unfreeze(self, error: Exception) -> None:
+        self.frozen = False
+        warnings.warn(f"frozen render pass failed ({error!r}); this scene now renders unfrozen", stacklevel=3)
+
+
+_PASSES: weakref.WeakKeyDictionary[Scene, RenderPasses] = weakref.WeakKeyDictionary()
+
+
+def passes(scene: Scene) -> RenderPasses:
+    """The (cached) render passes of ``scene``."""
+    if scene not in _PASSES:
+        _PASSES[scene] = RenderPasses(scene)
+    return _PASSES[scene]
