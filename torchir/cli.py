@@ -1,4 +1,9 @@
-"""The ``torchir`` command line. ``torchir info``: backend, versions and built-in scenes."""
+"""The ``torchir`` command line.
+
+``torchir fit --config run.yaml [--trainer.max_steps 50 ...]``: an inverse-rendering run
+(LightningCLI, see :mod:`torchir.training.cli`); ``torchir info``: backend, versions and
+built-in scenes.
+"""
 from __future__ import annotations
 
 import argparse
@@ -17,10 +22,21 @@ def _info(_: argparse.Namespace) -> int:
     return 0
 
 
+LIGHTNING_COMMANDS = ("fit", "validate")
+
+
 def main(argv: list[str] | None = None) -> int:
+    from_command_line = argv is None
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in LIGHTNING_COMMANDS:
+        from .training.cli import main as lightning_main
+
+        return lightning_main(None if from_command_line else argv)  # None: LightningCLI reads sys.argv
     parser = argparse.ArgumentParser(prog="torchir", description="Physics-based inverse rendering from PyTorch.")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("info", help="backend, versions and built-in scenes").set_defaults(run=_info)
+    for command in LIGHTNING_COMMANDS:
+        sub.add_parser(command, help=f"Lightning {command} of an inverse-rendering run (--config run.yaml)", add_help=False)
     args = parser.parse_args(argv)
     try:
         return args.run(args)

@@ -1,0 +1,216 @@
+"""The Lightning side: quickstart at tiny scale, outputs, resume == uninterrupted, config and
+input errors, the NaN guard, multi-view DDP against one process."""
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import lightning.pytorch as pl
+import pytest
+import torch
+
+from torchir import cli
+from torchir.training import InverseRenderingModule, ParameterConfig, ViewDataModule, load_image
+
+ROOT = Path(__file__).resolve().parents[1]
+QUICKSTART = str(ROOT / "configs" / "quickstart.yaml")
+
+
+def _fit(tmp_path: Path, *overrides: str, config: str = QUICKSTART) -> int:
+    return cli.main(
+        ["fit", "--config", config, "--model.resolution", "16", "--trainer.enable_progress_bar", "false",
+         "--trainer.enable_model_summary", "false", "--trainer.logger.init_args.save_dir", str(tmp_path), *overrides]
+    )
+
+
+def _run_dir(tmp_path: Path, name: str = "quickstart", version: int = 0) -> Path:
+    return tmp_path / name / f"version_{version}"
+
+
+def _latents(ckpt: Path) -> dict[str, torch.Tensor]:
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    return {k: v for k, v in state.items() if k.endswith("latent")}
+
+
+def test_quickstart_recovers_albedos_and_writes_outputs(tmp_path):
+    assert _fit(tmp_path, "--trainer.max_steps", "40", "--model.spp", "4") == 0
+    run = _run_dir(tmp_path)
+    rows = list(csv.DictReader(open(run / "metrics.csv")))
+    errors = [float(r["param_error"]) for r in rows if r.get("param_error")]
+    assert len(errors) == 40 and errors[-1] < 0.25 * errors[0], (errors[0], errors[-1])
+    assert all(float(r["paths_per_step"]) == 16 * 16 * 8 for r in rows if r.get("paths_per_step"))
+    for kind in ("target", "initial", "final"):
+        image = load_image(run / "images" / f"{kind}_v0.exr")
+        assert image.shape == (3, 16, 16) and bool(image.isfinite().all())
+        assert (run / "images" / f"{kind}_v0.png").stat().st_size > 0
+    assert (run / "curves.png").stat().st_size > 0
+    assert "red.reflectance.value" in (run / "config.yaml").read_text()
+    assert (run / "checkpoints" / "last.ckpt").is_file()
+    final = load_image(run / "images" / "final_v0.exr")
+    initial = load_image(run / "images" / "initial_v0.exr")
+    target = load_image(run / "images" / "target_v0.exr")
+    # Per-channel mean colour of the lit surfaces: Monte Carlo noise averages out over the image
+    # (measured floor <= 0.003 at 64 spp), wrong albedos do not. The light's own pixels (radiance
+    # ~18, partly covered at 16x16) are left out: their noise alone reaches 0.026.
+    surfaces = target.amax(0) < 1.0
+    colour_error = lambda image: (image[:, surfaces].mean(1) - target[:, surfaces].mean(1)).abs().sum()  # noqa: E731
+    assert colour_error(final) < 0.25 * colour_error(initial), (colour_error(final), colour_error(initial))
+
+
+def test_a_second_run_does_not_overwrite_the_first(tmp_path):
+    assert _fit(tmp_path, "--trainer.max_steps", "2") == 0
+    first = (_run_dir(tmp_path) / "metrics.csv").read_text()
+    assert _fit(tmp_path, "--trainer.max_steps", "3") == 0
+    assert (_run_dir(tmp_path) / "metrics.csv").read_text() == first
+    assert (_run_dir(tmp_path, version=1) / "metrics.csv").is_file()
+
+
+def test_resume_reproduces_the_uninterrupted_run(tmp_path):
+    """Resuming at step 4 of 8 ends where the uninterrupted run ends.
+
+    Not bitwise: Dr.Jit accumulates gradients with parallel float32 atomics, so even two
+    identical render calls differ by up to ~3e-7 relative (measured). The bound 1e-5 allows
+    that and nothing more: a resume that lost the optimiser state or the step counter (hence
+    the seeds) lands ~1e-2 away, as the control below shows.
+    """
+    common = ["--checkpoint.every_n_train_steps", "4", "--model.spp", "4"]
+    assert _fit(tmp_path / "a", "--trainer.max_steps", "8", *common) == 0
+    full = _run_dir(tmp_path / "a") / "checkpoints"
+    middle = full / "epoch=3-step=4.ckpt"
+    assert middle.is_file(), sorted(p.name for p in full.iterdir())
+    assert _fit(tmp_path / "b", "--trainer.max_steps", "8", *common, "--ckpt_path", str(middle)) == 0
+    uninterrupted = _latents(full / "last.ckpt")
+    resumed = _latents(_run_dir(tmp_path / "b") / "checkpoints" / "last.ckpt")
+    assert uninterrupted.keys() == resumed.keys()
+    for key in uninterrupted:
+        torch.testing.assert_close(resumed[key], uninterrupted[key], rtol=1e-5, atol=1e-6)
+        assert not torch.equal(_latents(middle)[key], uninterrupted[key])  # it really resumed mid-way
+
+    # Control: the same resume with a fresh optimiser (Adam moments lost) misses the bound.
+    state = torch.load(middle, map_location="cpu", weights_only=False)
+    state["optimizer_states"][0]["state"] = {}
+    torch.save(state, tmp_path / "no-moments.ckpt")
+    assert _fit(tmp_path / "c", "--trainer.max_steps", "8", *common, "--ckpt_path", str(tmp_path / "no-moments.ckpt")) == 0
+    broken = _latents(_run_dir(tmp_path / "c") / "checkpoints" / "last.ckpt")
+    assert any(not torch.allclose(broken[k], uninterrupted[k], rtol=1e-5, atol=1e-6) for k in uninterrupted)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        (["--model.lrr", "0.1"], "model.lrr"),
+        (["--model.spp", "many"], "model.spp"),
+        (["--model.parameters", '{"red.reflectance.value": {"bonds": [0, 1]}}'], "bonds"),
+    ],
+)
+def test_config_errors_name_the_key(tmp_path, capsys, override, message):
+    with pytest.raises(SystemExit) as exit_info:
+        _fit(tmp_path, *override)
+    assert exit_info.value.code != 0
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        (["--model.parameters", '{"red.reflectance.valu": {}}'], "Did you mean 'red.reflectance.value'"),
+        (["--model.parameters", '{"red.reflectance.value": {"init": [0.1, 0.2]}}'], "does not fit"),
+        (["--model.spp", "0"], "model.spp must be >= 1"),
+        (["--data.views", "[]"], "data.views is empty"),
+        (["--data.views", "[3]"], "has 1 sensor"),
+        (["--data.targets", "[missing.exr]"], "not found: 'missing.exr'"),
+    ],
+)
+def test_bad_inputs_give_clear_errors(tmp_path, capsys, override, message):
+    assert _fit(tmp_path, "--trainer.max_steps", "1", *override) == 1
+    assert message in capsys.readouterr().err
+
+
+def test_target_resolution_must_match(tmp_path, capsys):
+    from torchir.imageio import save_png
+
+    save_png(tmp_path / "small.png", torch.rand(3, 8, 8))
+    assert _fit(tmp_path, "--trainer.max_steps", "1", "--data.targets", f"[{tmp_path / 'small.png'}]") == 1
+    assert "is 8x8 (W x H), but sensor 0 renders 16x16" in capsys.readouterr().err
+
+
+def test_targets_from_files(tmp_path):
+    """A real-use run: the target is an EXR file and no ground truth is configured, so the run
+    logs no parameter error; the test knows the albedos that made the file and checks them."""
+    from torchir import Scene
+    from torchir.functions import render
+    from torchir.training.callbacks import _write_exr
+
+    scene = Scene.builtin("cbox", resolution=16)
+    _write_exr(tmp_path / "target.exr", render(scene, {}, spp=64, seed=5))
+    assert _fit(tmp_path, "--trainer.max_steps", "30", "--data.targets", f"[{tmp_path / 'target.exr'}]") == 0
+    rows = list(csv.DictReader(open(_run_dir(tmp_path) / "metrics.csv")))
+    assert not any(r.get("param_error") for r in rows) and any(r.get("loss") for r in rows)
+    final = _latents(_run_dir(tmp_path) / "checkpoints" / "last.ckpt")
+    truth = torch.stack([scene.get("red.reflectance.value"), scene.get("green.reflectance.value")])
+    recovered = torch.stack([final["scene_parameters.0.latent"], final["scene_parameters.1.latent"]])
+    assert (recovered - truth).norm() < 0.5 * (torch.full_like(truth, 0.5) - truth).norm()
+
+
+def test_nonfinite_loss_stops_and_keeps_the_last_good_state(tmp_path, capsys):
+    code = _fit(tmp_path, "--trainer.max_steps", "10", "--model.loss", "tests.helpers.NaNAfterLoss", "--model.loss.steps", "3")
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "the loss became nan at step 3" in err and "last-good.ckpt" in err
+    good = _latents(_run_dir(tmp_path) / "checkpoints" / "last-good.ckpt")
+    # The saved state is the one after the 3 good steps: the same as a clean 3-step run's.
+    assert _fit(tmp_path / "clean", "--trainer.max_steps", "3") == 0
+    clean = _latents(_run_dir(tmp_path / "clean") / "checkpoints" / "last.ckpt")
+    for key in clean:
+        assert bool(good[key].isfinite().all())
+        torch.testing.assert_close(good[key], clean[key], rtol=1e-5, atol=1e-6)
+
+
+def test_module_and_datamodule_work_in_plain_lightning(tmp_path):
+    model = InverseRenderingModule(
+        scene="glossy_ball", resolution=8,
+        parameters={"ball.bsdf.alpha": ParameterConfig(init=0.3, bounds=(0.01, 0.5), transform="sigmoid")},
+        spp=2,
+    )
+    trainer = pl.Trainer(max_steps=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, default_root_dir=tmp_path)
+    trainer.fit(model, ViewDataModule(target_spp=16))
+    alpha = model.scene_values()["ball.bsdf.alpha"]
+    assert trainer.global_step == 3 and 0.01 < float(alpha) < 0.5
+
+
+def test_bounds_hold_after_every_step(tmp_path):
+    assert _fit(tmp_path, "--trainer.max_steps", "5", "--model.lr", "2.0") == 0
+    for value in _latents(_run_dir(tmp_path) / "checkpoints" / "last.ckpt").values():
+        assert float(value.min()) >= 0.0 and float(value.max()) <= 1.0
+
+
+def _multiview_run(tmp_path: Path, *extra: str) -> dict[str, torch.Tensor]:
+    args = [
+        sys.executable, "-m", "torchir", "fit", "--config", str(ROOT / "configs" / "multiview.yaml"),
+        "--model.resolution", "8", "--model.scene_options", "{views: 2, texture: 4}", "--model.spp", "2",
+        "--model.optimizer", "sgd", "--model.lr", "5.0", "--data.views_per_step", "2", "--data.target_spp", "8",
+        "--trainer.max_steps", "2", "--trainer.enable_progress_bar", "false", "--images.exr", "false",
+        "--trainer.logger.init_args.save_dir", str(tmp_path), *extra,
+    ]
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    result = subprocess.run(args, capture_output=True, text=True, timeout=600, cwd=tmp_path,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = list(csv.DictReader(open(_run_dir(tmp_path, "multiview") / "metrics.csv")))
+    paths = {float(r["paths_per_step"]) for r in rows if r.get("paths_per_step")}
+    assert paths == {2 * 8 * 8 * (2 + 2)}  # summed over processes: 2 views in all, not 2 per process
+    return _latents(_run_dir(tmp_path, "multiview") / "checkpoints" / "last.ckpt")
+
+
+def test_ddp_two_processes_match_one_process(tmp_path):
+    """Views split over 2 processes (gloo) must give the single process's SGD trajectory."""
+    single = _multiview_run(tmp_path / "one")
+    ddp = _multiview_run(tmp_path / "two", "--trainer.strategy", "ddp", "--trainer.devices", "2", "--trainer.accelerator", "cpu")
+    initial = torch.full_like(next(iter(single.values())), 0.5)
+    for key in single:
+        assert not torch.allclose(single[key], initial)  # the run moved the texture
+        torch.testing.assert_close(ddp[key], single[key], rtol=1e-4, atol=1e-6)

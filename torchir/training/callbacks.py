@@ -1,0 +1,149 @@
+"""Lightning callbacks of an inverse-rendering run: projection, timing, the NaN guard, images
+and curves. Outputs go to the run's folder (the logger's version directory)."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+
+from ..imageio import save_png
+
+__all__ = ["ParameterProjection", "StepTimer", "NonFiniteLossGuard", "ImageWriter", "CurvePlotter"]
+
+
+class ParameterProjection(pl.Callback):
+    """Clamp every optimised parameter to its bounds after each optimiser step."""
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        pl_module.project_parameters()
+
+
+class StepTimer(pl.Callback):
+    """Log ``seconds_per_step``: wall time of a training step (render, loss, backward, update)."""
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        self._start = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        pl_module.log("seconds_per_step", time.perf_counter() - self._start, on_step=True, on_epoch=False, batch_size=1)
+
+
+class NonFiniteLossGuard(pl.Callback):
+    """When the loss turns NaN/Inf, save the (still good) state as ``last-good.ckpt`` and stop."""
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if pl_module.nonfinite is None:
+            return
+        path = Path(pl_module.results_dir) / "checkpoints" / "last-good.ckpt"
+        trainer.save_checkpoint(path)
+        pl_module.nonfinite += f"; the last good state is in {path}"
+        trainer.should_stop = True
+
+
+def _write_exr(path: Path, image: torch.Tensor) -> None:
+    import mitsuba as mi
+
+    array = np.ascontiguousarray(image.detach().float().permute(1, 2, 0).cpu().numpy())
+    mi.Bitmap(array).write(str(path))
+
+
+class ImageWriter(pl.Callback):
+    """Write target, initial, current and final images of every view (PNG, tone-mapped; EXR, linear).
+
+    Files: ``images/{target,initial,current,final}_v{view}.{png,exr}`` in the run folder;
+    ``current`` is rewritten every ``every_n_steps`` steps.
+
+    Args:
+        every_n_steps: how often ``current`` is rewritten (0: never).
+        exr: also write linear EXR files.
+        max_views: write at most this many views.
+    """
+
+    def __init__(self, every_n_steps: int = 50, exr: bool = True, max_views: int = 4) -> None:
+        self.every_n_steps, self.exr, self.max_views = every_n_steps, exr, max_views
+
+    def _write(self, trainer, pl_module, kind: str, images: dict[int, torch.Tensor]) -> None:
+        if not trainer.is_global_zero:
+            return
+        folder = Path(pl_module.results_dir) / "images"
+        folder.mkdir(parents=True, exist_ok=True)
+        for view, image in images.items():
+            save_png(folder / f"{kind}_v{view}.png", image)
+            if self.exr:
+                _write_exr(folder / f"{kind}_v{view}.exr", image)
+
+    def _views(self, trainer) -> list[int]:
+        return list(trainer.datamodule.views)[: self.max_views]
+
+    def _previews(self, trainer, pl_module) -> dict[int, torch.Tensor]:
+        return {v: pl_module.preview(v) for v in self._views(trainer)}
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        data = trainer.datamodule
+        self._write(trainer, pl_module, "target", {v: t for v, t in zip(data.views, data.targets) if v in self._views(trainer)})
+        if trainer.global_step == 0:
+            self._write(trainer, pl_module, "initial", self._previews(trainer, pl_module))
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if self.every_n_steps and trainer.global_step % self.every_n_steps == 0 and trainer.is_global_zero:
+            self._write(trainer, pl_module, "current", self._previews(trainer, pl_module))
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        if trainer.is_global_zero:
+            self._write(trainer, pl_module, "final", self._previews(trainer, pl_module))
+
+
+class CurvePlotter(pl.Callback):
+    """Keep the per-step metrics and write ``curves.png`` (loss, image and parameter error
+    against steps and against wall time) at the end. Its history is saved in checkpoints, so a
+    resumed run plots the whole trajectory."""
+
+    METRICS = ("loss", "image_error", "param_error")
+
+    def __init__(self) -> None:
+        self.history: list[dict[str, float]] = []
+        self._elapsed = 0.0
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self._start = time.perf_counter() - self._elapsed
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        metrics = trainer.callback_metrics
+        row = {"step": float(trainer.global_step), "seconds": time.perf_counter() - self._start}
+        row.update({m: float(metrics[m]) for m in self.METRICS if m in metrics})
+        self.history.append(row)
+        self._elapsed = row["seconds"]
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        if trainer.is_global_zero and self.history:
+            self.plot(Path(pl_module.results_dir) / "curves.png")
+
+    def plot(self, path: Path) -> None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        metrics = [m for m in self.METRICS if any(m in r for r in self.history)]
+        fig, axes = plt.subplots(2, len(metrics), figsize=(4 * len(metrics), 6.5), squeeze=False)
+        for col, metric in enumerate(metrics):
+            rows = [r for r in self.history if metric in r]
+            for row, x in enumerate(("step", "seconds")):
+                ax = axes[row][col]
+                ax.semilogy([r[x] for r in rows], [max(r[metric], 1e-12) for r in rows])
+                ax.set(xlabel="optimiser step" if x == "step" else "wall time (s)", ylabel=metric, title=f"{metric} vs {x}")
+                ax.grid(alpha=0.3)
+        fig.tight_layout()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"history": self.history, "elapsed": self._elapsed}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.history, self._elapsed = list(state["history"]), float(state["elapsed"])

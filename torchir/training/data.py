@@ -1,0 +1,128 @@
+"""ViewDataModule: the target images, one per sensor, served as batches of views."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from ..functions import render
+
+__all__ = ["ViewDataModule", "ViewDataset", "load_image"]
+
+
+def load_image(path: str | Path) -> torch.Tensor:
+    """Read an EXR/HDR (linear) or PNG/JPEG (sRGB, linearised) file as ``(3, H, W)`` float32."""
+    import mitsuba as mi
+
+    from .. import backend
+
+    backend.variant()
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"target image not found: {str(path)!r}")
+    bitmap = mi.Bitmap(str(path))
+    srgb = path.suffix.lower() in (".png", ".jpg", ".jpeg")
+    rgb = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+    array = np.array(rgb, dtype=np.float32)
+    if srgb:  # 8-bit files store sRGB-encoded values: undo the transfer curve
+        array = np.where(array <= 0.04045, array / 12.92, ((array + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    return torch.from_numpy(np.ascontiguousarray(array)).permute(2, 0, 1).contiguous()
+
+
+class ViewDataset(Dataset):
+    """Item ``i``: ``{"view": sensor index, "target": (C, H, W) image}``."""
+
+    def __init__(self, views: list[int], targets: list[torch.Tensor]) -> None:
+        self.views, self.targets = views, targets
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {"view": torch.tensor(self.views[i]), "target": self.targets[i]}
+
+
+class ViewDataModule(pl.LightningDataModule):
+    """Target views for :class:`~torchir.training.InverseRenderingModule`.
+
+    Targets are either rendered from the model's scene at ``target_spp`` with the parameters'
+    ground-truth values (``targets: null``: synthetic experiments, parameter error known), or
+    read from image files, one per view (``targets: [a.exr, b.png, ...]``; EXR is linear,
+    PNG is taken as sRGB). A batch is a set of views; with several processes (DDP) each
+    process renders its share of the batch.
+
+    Args:
+        targets: image files, one per entry of ``views``; ``None`` for synthetic targets.
+        views: sensor indices to fit (default: every sensor of the scene).
+        views_per_step: views per optimiser step over all processes (default: all views).
+        target_spp: samples per pixel of synthetic targets.
+        target_seed: seed of synthetic targets (view ``v`` uses ``target_seed + v``).
+    """
+
+    def __init__(
+        self,
+        targets: Optional[list[str]] = None,
+        views: Optional[list[int]] = None,
+        views_per_step: Optional[int] = None,
+        target_spp: int = 256,
+        target_seed: int = 1_000_003,
+    ) -> None:
+        super().__init__()
+        if views is not None and len(views) == 0:
+            raise ValueError("data.views is empty: give at least one sensor index, or null for all sensors")
+        if targets is not None and len(targets) == 0:
+            raise ValueError("data.targets is empty: give one image per view, or null for synthetic targets")
+        if target_spp < 1:
+            raise ValueError(f"data.target_spp must be >= 1, got {target_spp}")
+        self.target_files, self.requested_views = targets, views
+        self.views_per_step, self.target_spp, self.target_seed = views_per_step, target_spp, target_seed
+        self.synthetic = targets is None
+        self.views: list[int] = []
+        self.targets: list[torch.Tensor] = []
+
+    def setup(self, stage: str) -> None:
+        if self.targets:
+            return
+        module = self.trainer.lightning_module
+        scene = module.scene
+        self.views = list(range(scene.sensor_count)) if self.requested_views is None else list(self.requested_views)
+        for v in self.views:
+            if not 0 <= v < scene.sensor_count:
+                raise ValueError(f"data.views has sensor {v}, but the scene has {scene.sensor_count} sensor(s)")
+        if self.synthetic:
+            truth = module.ground_truth()
+            with torch.no_grad():
+                self.targets = [
+                    render(scene, truth, spp=self.target_spp, seed=self.target_seed + v, sensor=v) for v in self.views
+                ]
+        else:
+            if len(self.target_files) != len(self.views):
+                raise ValueError(f"data.targets has {len(self.target_files)} file(s) for {len(self.views)} view(s) {self.views}")
+            missing = [f for f in self.target_files if not Path(f).is_file()]
+            if missing:
+                raise FileNotFoundError(f"target image(s) not found: {', '.join(repr(m) for m in missing)}")
+            self.targets = []
+            for v, path in zip(self.views, self.target_files):
+                image = load_image(path)
+                expected = (3, *scene.sensor_resolution(v))
+                if tuple(image.shape) != expected:
+                    raise ValueError(
+                        f"target {path!r} is {image.shape[2]}x{image.shape[1]} (W x H), but sensor {v} renders "
+                        f"{expected[2]}x{expected[1]}: resize it or set model.resolution"
+                    )
+                if not bool(torch.isfinite(image).all()):
+                    raise ValueError(f"target {path!r} contains NaN/Inf pixels")
+                self.targets.append(image)
+
+    def train_dataloader(self) -> DataLoader:
+        world = self.trainer.world_size if self.trainer is not None else 1
+        per_step = self.views_per_step or len(self.views)
+        if per_step < 1 or per_step > len(self.views):
+            raise ValueError(f"data.views_per_step must be in [1, {len(self.views)}], got {per_step}")
+        if per_step % world:
+            raise ValueError(f"data.views_per_step ({per_step}) must be divisible by the number of processes ({world})")
+        return DataLoader(ViewDataset(self.views, self.targets), batch_size=per_step // world, shuffle=False, num_workers=0)

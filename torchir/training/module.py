@@ -1,0 +1,239 @@
+"""InverseRenderingModule: a LightningModule that recovers scene parameters from images."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal, Optional, Union
+
+import lightning.pytorch as pl
+import torch
+from torch import nn
+
+from .. import Scene
+from ..functions import render
+from ..modules.losses import PIXEL_LOSSES
+from .parameters import ParameterConfig, SceneParameter, resolve_value
+
+__all__ = ["InverseRenderingModule", "NonFiniteLossError"]
+
+_GOLDEN = 2654435761  # Knuth's multiplicative hash: spreads base seeds far apart
+
+
+class NonFiniteLossError(RuntimeError):
+    """The loss became NaN/Inf; the run stopped before applying that step."""
+
+
+def _load_scene(scene: str, resolution, scene_options: dict[str, Any]) -> Scene:
+    if scene.endswith(".xml"):
+        if resolution is not None:
+            raise ValueError("resolution applies to built-in scenes; set the film size in the XML file instead")
+        return Scene.from_file(scene, **scene_options)
+    return Scene.builtin(scene, resolution=resolution, **scene_options)
+
+
+class InverseRenderingModule(pl.LightningModule):
+    """Optimise Mitsuba scene parameters so that renders match target views.
+
+    ``training_step`` renders each view of its batch with :func:`torchir.functions.render`,
+    applies the optional denoiser (``denoiser(images, targets)``, both ``(B, C, H, W)``) and the
+    loss, and returns the loss; Lightning does the backward pass and the optimiser step. The
+    optimised quantities are ``nn.Parameter``\\ s (one :class:`SceneParameter` per Mitsuba key).
+
+    Args:
+        scene: a built-in scene name (``torchir.scenes.available()``) or a Mitsuba ``.xml`` path.
+        resolution: film size of a built-in scene, ``H`` or ``[H, W]``.
+        scene_options: builder options of a built-in scene, or ``$``-substitutions of an XML file.
+        parameters: ``{Mitsuba key: ParameterConfig}``; default: the built-in scene's typical
+            unknowns, initialised to 0.5.
+        loss: ``"l1"``, ``"l2"``, ``"relative_l2"`` or any ``nn.Module`` ``(rendered, target) -> scalar``
+            (by class path in YAML).
+        denoiser: an optional ``nn.Module`` ``(noisy, target) -> denoised``.
+        spp, spp_grad: samples per pixel of the primal image and of the gradient pass.
+        seed: base seed; step ``t`` renders view ``v`` with a seed derived from (seed, t, v) only,
+            so runs, resumed runs and multi-process runs see the same random numbers.
+        lr: learning rate (per-parameter ``lr`` overrides it).
+        optimizer: ``adam`` (default) or ``sgd``.
+        preview_spp: samples per pixel of the images written for people (initial/current/final).
+    """
+
+    def __init__(
+        self,
+        scene: str = "cbox",
+        resolution: Optional[Union[int, tuple[int, int]]] = None,
+        scene_options: Optional[dict[str, Any]] = None,
+        parameters: Optional[dict[str, ParameterConfig]] = None,
+        loss: Union[str, nn.Module] = "l2",
+        denoiser: Optional[nn.Module] = None,
+        spp: int = 8,
+        spp_grad: Optional[int] = None,
+        seed: int = 0,
+        lr: float = 0.05,
+        optimizer: Literal["adam", "sgd"] = "adam",
+        preview_spp: int = 64,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters(ignore=["loss", "denoiser"])
+        for name, value in (("spp", spp), ("preview_spp", preview_spp)) + ((("spp_grad", spp_grad),) if spp_grad else ()):
+            if value < 1:
+                raise ValueError(f"model.{name} must be >= 1, got {value}")
+        if lr <= 0:
+            raise ValueError(f"model.lr must be > 0, got {lr}")
+        self.scene = _load_scene(scene, resolution, dict(scene_options or {}))
+        if parameters is None:
+            if self.scene.name not in _builtin_names():
+                raise ValueError("model.parameters is required for scenes loaded from files")
+            from .. import scenes
+
+            parameters = {key: ParameterConfig() for key in scenes.get(self.scene.name).parameters}
+        if not parameters:
+            raise ValueError("model.parameters is empty: nothing to optimise")
+        self.configs = {key: _as_config(key, cfg) for key, cfg in parameters.items()}
+        self.keys = list(self.configs)
+        self.scene_parameters = nn.ModuleList(self._build_parameter(key) for key in self.keys)
+        self.loss_fn = _resolve_loss(loss)
+        self.denoiser = denoiser
+        self.spp, self.spp_grad, self.seed, self.lr = spp, spp_grad or spp, seed, lr
+        self.optimizer_name, self.preview_spp = optimizer, preview_spp
+        self.nonfinite: Optional[str] = None  # set when a non-finite loss stopped the run
+
+    # ------------------------------------------------------------------------ parameters
+    def _build_parameter(self, key: str) -> SceneParameter:
+        config = self.configs[key]
+        scene_value = self.scene.get(key)  # KeyError with close matches for unknown keys
+        initial = resolve_value(config.init, scene_value.shape, scene_value, config.bounds, config.seed, f"parameters[{key!r}].init")
+        self.scene.check_values({key: initial.requires_grad_()})  # dtype, shape, differentiable, finite
+        return SceneParameter(key, initial.detach(), config)
+
+    def scene_values(self) -> dict[str, torch.Tensor]:
+        """``{Mitsuba key: current value}`` (differentiable w.r.t. the latents)."""
+        return {key: p() for key, p in zip(self.keys, self.scene_parameters)}
+
+    def ground_truth(self, explicit_only: bool = False) -> dict[str, torch.Tensor]:
+        """``{key: true value}`` from ``truth`` in the config, else the loaded scene value
+        (``explicit_only``: only the configured ones)."""
+        truth = {}
+        for key in self.keys:
+            config = self.configs[key]
+            if config.truth is None and explicit_only:
+                continue
+            scene_value = self.scene.get(key)
+            spec = "scene" if config.truth is None else config.truth
+            truth[key] = resolve_value(spec, scene_value.shape, scene_value, config.bounds, config.seed, f"parameters[{key!r}].truth")
+        return truth
+
+    @torch.no_grad()
+    def project_parameters(self) -> None:
+        """Enforce every parameter's bounds (called after each optimiser step)."""
+        for p in self.scene_parameters:
+            p.project()
+
+    @torch.no_grad()
+    def parameter_error(self, truth: dict[str, torch.Tensor]) -> Optional[float]:
+        """RMSE over all entries of the parameters with a known truth, or None."""
+        if not truth:
+            return None
+        values = self.scene_values()
+        sq = sum(float((values[k] - t.to(values[k])).square().sum()) for k, t in truth.items())
+        n = sum(t.numel() for t in truth.values())
+        return math.sqrt(sq / n)
+
+    # ---------------------------------------------------------------------------- render
+    def step_seed(self, step: int, view: int) -> int:
+        """Seed of view ``view`` at optimiser step ``step``: a function of (seed, step, view) only."""
+        return (self.seed * _GOLDEN + step * self.scene.sensor_count + view) % 2**32
+
+    def render_views(self, views: list[int], step: int) -> torch.Tensor:
+        """Differentiable renders of ``views`` at ``step``, ``(B, C, H, W)``."""
+        values = self.scene_values()
+        images = [
+            render(self.scene, values, spp=self.spp, seed=self.step_seed(step, v), sensor=v, spp_grad=self.spp_grad)
+            for v in views
+        ]
+        return torch.stack(images)
+
+    @torch.no_grad()
+    def preview(self, view: int, values: Optional[dict[str, torch.Tensor]] = None, seed: int = 2**32 - 7) -> torch.Tensor:
+        """A low-noise image of ``view`` for people, ``(C, H, W)``, not differentiated."""
+        values = self.scene_values() if values is None else values
+        return render(self.scene, {k: v.detach() for k, v in values.items()}, spp=self.preview_spp, seed=seed, sensor=view)
+
+    # ------------------------------------------------------------------------- lightning
+    def forward(self, views: list[int], step: int = 0) -> torch.Tensor:
+        return self.render_views(views, step)
+
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> Optional[torch.Tensor]:
+        views = [int(v) for v in batch["view"]]
+        targets = batch["target"]
+        images = self.render_views(views, self.global_step)
+        if self.denoiser is not None:
+            images = self.denoiser(images, targets)
+        loss = self.loss_fn(images, targets)
+        if not bool(torch.isfinite(loss)):
+            self.nonfinite = (
+                f"the loss became {float(loss)} at step {self.global_step} (views {views}); the run stopped "
+                f"before applying that step"
+            )
+            self.trainer.should_stop = True
+            return None  # Lightning skips backward and the optimiser step
+        batch_size = len(views)
+        self.log("loss", loss, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True)
+        self.log("image_error", (images.detach() - targets).square().mean(), on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True)
+        h, w = self.scene.resolution
+        self.log("paths_per_step", float(batch_size * h * w * (self.spp + self.spp_grad)), on_step=True, on_epoch=False, batch_size=batch_size, reduce_fx="sum", sync_dist=True)
+        error = self.parameter_error(self._truth)
+        if error is not None:
+            self.log("param_error", error, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size)
+        return loss
+
+    def setup(self, stage: str) -> None:
+        datamodule = getattr(self.trainer, "datamodule", None)
+        synthetic = datamodule is None or getattr(datamodule, "synthetic", True)
+        self._truth = self.ground_truth(explicit_only=not synthetic)
+        # trainer.log_dir is a collective under DDP: resolve it here, on every rank, once.
+        self._results_dir = Path(self.trainer.log_dir or self.trainer.default_root_dir)
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        groups = [
+            {"params": [p.latent], "lr": self.configs[key].lr or self.lr, "name": key}
+            for key, p in zip(self.keys, self.scene_parameters)
+        ]
+        if self.optimizer_name == "sgd":
+            return torch.optim.SGD(groups, lr=self.lr)
+        return torch.optim.Adam(groups, lr=self.lr)
+
+    def configure_callbacks(self) -> list[pl.Callback]:
+        from .callbacks import NonFiniteLossGuard, ParameterProjection, StepTimer
+
+        return [ParameterProjection(), StepTimer(), NonFiniteLossGuard()]
+
+    @property
+    def results_dir(self) -> Path:
+        """Where this run writes its outputs (the logger's version folder)."""
+        return self._results_dir
+
+
+def _builtin_names() -> set[str]:
+    from .. import scenes
+
+    return set(scenes.available())
+
+
+def _as_config(key: str, config: Any) -> ParameterConfig:
+    if isinstance(config, ParameterConfig):
+        return config
+    if config is None:
+        return ParameterConfig()
+    if isinstance(config, dict):
+        unknown = set(config) - set(ParameterConfig.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"parameters[{key!r}] has unknown field(s) {sorted(unknown)}; allowed: {sorted(ParameterConfig.__dataclass_fields__)}")
+        return ParameterConfig(**config)
+    raise TypeError(f"parameters[{key!r}] must be a mapping of ParameterConfig fields, got {type(config).__name__}")
+
+
+def _resolve_loss(loss: Union[str, nn.Module]) -> nn.Module:
+    if isinstance(loss, nn.Module):
+        return loss
+    if isinstance(loss, str) and loss in PIXEL_LOSSES:
+        return PIXEL_LOSSES[loss]()
+    raise ValueError(f"model.loss must be one of {sorted(PIXEL_LOSSES)} or an nn.Module class path, got {loss!r}")

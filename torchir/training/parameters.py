@@ -1,0 +1,121 @@
+"""Optimised scene quantities: configuration, initial values, reparameterisation and bounds.
+
+Each optimised Mitsuba key becomes one :class:`SceneParameter`: an ``nn.Parameter`` holding a
+*latent* value ``u`` and a transform giving the scene value ``x = T(u)``:
+
+============  =====================  ==========================================
+transform     x = T(u)               use
+============  =====================  ==========================================
+``none``      ``u``                  plain values; ``bounds`` clamp after each step
+``sigmoid``   ``lo + (hi-lo)σ(u)``   values in ``bounds`` (default (0, 1)) without clamping
+``log``       ``exp(u)``             positive values spanning magnitudes
+============  =====================  ==========================================
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Optional, Union
+
+import torch
+from torch import nn
+
+__all__ = ["ParameterConfig", "SceneParameter"]
+
+InitValue = Union[float, list, str]
+
+
+@dataclass
+class ParameterConfig:
+    """How one Mitsuba parameter is optimised (a ``model.parameters`` entry of the YAML config).
+
+    Attributes:
+        init: a constant (broadcast to the parameter's shape), an explicit nested list of the
+            parameter's shape, ``"random"`` (uniform in ``bounds``, default [0, 1], drawn with
+            ``seed``) or ``"scene"`` (the value the scene was loaded with).
+        bounds: ``[lo, hi]``: clamped after every optimiser step (transform ``none``) or the
+            range of the sigmoid (transform ``sigmoid``).
+        lr: learning rate of this parameter (default: the model's ``lr``).
+        transform: ``none``, ``sigmoid`` or ``log`` (see the module docstring).
+        seed: seed of a ``random`` init.
+        truth: the ground-truth value (same forms as ``init``) for synthetic targets and the
+            parameter error; default: the value the scene was loaded with.
+    """
+
+    init: InitValue = 0.5
+    bounds: Optional[tuple[float, float]] = None
+    lr: Optional[float] = None
+    transform: Literal["none", "sigmoid", "log"] = "none"
+    seed: int = 0
+    truth: Optional[InitValue] = None
+
+
+def resolve_value(spec: InitValue, shape: torch.Size, scene_value: torch.Tensor, bounds, seed: int, what: str) -> torch.Tensor:
+    """A float32 tensor of ``shape`` from a config value (see :class:`ParameterConfig`)."""
+    if isinstance(spec, str):
+        if spec == "scene":
+            return scene_value.clone()
+        if spec == "random":
+            lo, hi = bounds if bounds is not None else (0.0, 1.0)
+            generator = torch.Generator().manual_seed(seed)
+            return lo + (hi - lo) * torch.rand(shape, generator=generator)
+        raise ValueError(f"{what} must be a number, a list, 'random' or 'scene', got {spec!r}")
+    value = torch.as_tensor(spec, dtype=torch.float32)
+    try:
+        return value.expand(shape).clone() if value.dim() <= len(shape) else value.reshape(shape)
+    except RuntimeError:
+        raise ValueError(f"{what} has shape {tuple(value.shape)}, which does not fit the parameter's shape {tuple(shape)}") from None
+
+
+class SceneParameter(nn.Module):
+    """One optimised scene quantity: a latent ``nn.Parameter`` and its transform.
+
+    Args:
+        key: the Mitsuba key.
+        initial: the initial scene value ``x0`` (the latent starts at ``T^{-1}(x0)``).
+        config: its :class:`ParameterConfig`.
+    """
+
+    def __init__(self, key: str, initial: torch.Tensor, config: ParameterConfig) -> None:
+        super().__init__()
+        self.key, self.transform = key, config.transform
+        bounds = config.bounds
+        if bounds is not None and not bounds[0] < bounds[1]:
+            raise ValueError(f"parameter {key!r}: bounds must satisfy lo < hi, got {list(bounds)}")
+        if config.transform == "sigmoid":
+            bounds = bounds or (0.0, 1.0)
+        elif config.transform == "log" and bounds is not None:
+            raise ValueError(f"parameter {key!r}: transform 'log' keeps values positive; drop 'bounds'")
+        self.bounds = None if bounds is None else (float(bounds[0]), float(bounds[1]))
+        self.latent = nn.Parameter(self._inverse(initial.float()))
+
+    def _inverse(self, x: torch.Tensor) -> torch.Tensor:
+        if self.transform == "sigmoid":
+            lo, hi = self.bounds
+            t = ((x - lo) / (hi - lo)).clamp(1e-4, 1 - 1e-4)  # keep the logit finite at the bounds
+            return torch.logit(t)
+        if self.transform == "log":
+            if bool((x <= 0).any()):
+                raise ValueError(f"parameter {self.key!r}: transform 'log' needs a positive initial value")
+            return x.log()
+        if self.bounds is not None:
+            x = x.clamp(*self.bounds)
+        return x.clone()
+
+    def forward(self) -> torch.Tensor:
+        """The scene value ``T(latent)``, float32 in the parameter's Mitsuba shape."""
+        u = self.latent
+        if self.transform == "sigmoid":
+            lo, hi = self.bounds
+            return lo + (hi - lo) * torch.sigmoid(u)
+        if self.transform == "log":
+            return u.exp()
+        return u
+
+    @torch.no_grad()
+    def project(self) -> None:
+        """Enforce ``bounds`` after an optimiser step (only ``none`` needs it)."""
+        if self.transform == "none" and self.bounds is not None:
+            self.latent.clamp_(*self.bounds)
+
+    def extra_repr(self) -> str:
+        return f"key={self.key!r}, shape={tuple(self.latent.shape)}, transform={self.transform!r}, bounds={self.bounds}"
