@@ -214,3 +214,12 @@ def test_ddp_two_processes_match_one_process(tmp_path):
     for key in single:
         assert not torch.allclose(single[key], initial)  # the run moved the texture
         torch.testing.assert_close(ddp[key], single[key], rtol=1e-4, atol=1e-6)
+
+
+def test_tensorboard_logs_beside_the_csv_when_installed(tmp_path, monkeypatch):
+    import torchir.training.cli as training_cli
+
+    monkeypatch.setattr(training_cli, "_tensorboard_installed", lambda: True)  # tensorboardX backs it here
+    assert _fit(tmp_path, "--trainer.max_steps", "2") == 0
+    run = _run_dir(tmp_path)
+    assert (run / "metrics.csv").is_file() and list(run.glob("events.out.tfevents.*"))

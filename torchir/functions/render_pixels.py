@@ -50,10 +50,10 @@ def _pixel_rays(sensor: mi.Sensor, pixel: mi.UInt32, sampler: mi.Sampler):
         return sensor.sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
 
 
-def _lane_pixels(index: mi.UInt32, spp: int) -> mi.UInt32:
-    """Pixel of each of the ``len(index) * spp`` lanes: lanes ``[n*spp, (n+1)*spp)`` trace pixel ``n``."""
-    lane = dr.arange(mi.UInt32, dr.width(index) * spp)
-    return dr.gather(mi.UInt32, index, lane // dr.opaque(mi.UInt32, spp))
+def _per_lane(array_type: type, per_pixel, spp: int):
+    """Repeat each entry ``spp`` times: lanes ``[n*spp, (n+1)*spp)`` belong to listed pixel ``n``."""
+    lane = dr.arange(mi.UInt32, dr.width(per_pixel) * spp)
+    return dr.gather(array_type, per_pixel, lane // dr.opaque(mi.UInt32, spp))
 
 
 def _seeded_sampler(seed: int, lanes: int) -> mi.Sampler:
@@ -70,7 +70,7 @@ class _PixelRenderOp(BoundRenderOp):
     def primal(self) -> mi.TensorXf:
         s: _PixelSettings = self.settings
         index = s.index
-        lanes = _lane_pixels(index, s.spp)
+        lanes = _per_lane(mi.UInt32, index, s.spp)
         sampler = _seeded_sampler(s.seed, dr.width(lanes))
         sensor = self.scene.sensor(s.sensor)
         ray, weight = _pixel_rays(sensor, lanes, sampler)
@@ -83,14 +83,13 @@ class _PixelRenderOp(BoundRenderOp):
 
     def adjoint(self, grad_out: mi.TensorXf) -> None:
         s: _PixelSettings = self.settings
-        lanes = _lane_pixels(s.index, s.spp_grad)
+        lanes = _per_lane(mi.UInt32, s.index, s.spp_grad)
         sampler = _seeded_sampler(s.seed_grad, dr.width(lanes))
         sensor = self.scene.sensor(s.sensor)
         with dr.suspend_grad():
             ray, weight = _pixel_rays(sensor, lanes, sampler)
             δ_pixel = dr.unravel(mi.Color3f, grad_out.array)
-            lane = dr.arange(mi.UInt32, dr.width(lanes))
-            δL = dr.gather(mi.Color3f, δ_pixel, lane // dr.opaque(mi.UInt32, s.spp_grad)) * weight / s.spp_grad
+            δL = _per_lane(mi.Color3f, δ_pixel, s.spp_grad) * weight / s.spp_grad
             integrator, mi_scene = self.scene.integrator, self.scene.mi_scene
             L, _, _, state = integrator.sample(
                 mode=dr.ADMode.Primal, scene=mi_scene, sampler=sampler.clone(), ray=ray,

@@ -30,11 +30,8 @@ os.environ.setdefault("JSONARGPARSE_DEPRECATION_WARNINGS", "off")
 warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\).*")
 
 
-def _default_loggers() -> list:
-    loggers = [lazy_instance(CSVLogger, save_dir="results", name="torchir")]
-    if importlib.util.find_spec("tensorboard") is not None:  # TensorBoard when installed
-        loggers.append(lazy_instance(TensorBoardLogger, save_dir="results", name="torchir"))
-    return loggers
+def _tensorboard_installed() -> bool:
+    return importlib.util.find_spec("tensorboard") is not None
 
 
 class TorchirCLI(LightningCLI):
@@ -45,6 +42,18 @@ class TorchirCLI(LightningCLI):
         parser.set_defaults({"checkpoint.save_last": True, "checkpoint.every_n_train_steps": 50, "checkpoint.save_top_k": -1})
         parser.add_lightning_class_args(ImageWriter, "images")
         parser.add_lightning_class_args(CurvePlotter, "curves")
+
+    def instantiate_trainer(self, **kwargs):
+        """Add a TensorBoard logger beside the CSV one, into the same run folder, when
+        ``tensorboard`` is installed and the config has none."""
+        trainer = super().instantiate_trainer(**kwargs)
+        loggers = trainer.loggers
+        if _tensorboard_installed() and loggers and isinstance(loggers[0], CSVLogger) and not any(
+            isinstance(logger, TensorBoardLogger) for logger in loggers
+        ):
+            csv = loggers[0]
+            trainer.loggers = [*loggers, TensorBoardLogger(save_dir=csv.save_dir, name=csv.name, version=csv.version)]
+        return trainer
 
     def after_fit(self) -> None:
         model, trainer = self.model, self.trainer
@@ -63,7 +72,11 @@ def main(args: list[str] | None = None) -> int:
             InverseRenderingModule,
             ViewDataModule,
             args=args,
-            trainer_defaults={"logger": _default_loggers(), "log_every_n_steps": 1, "max_steps": 100},
+            trainer_defaults={
+                "logger": [lazy_instance(CSVLogger, save_dir="results", name="torchir")],
+                "log_every_n_steps": 1,
+                "max_steps": 100,
+            },
             save_config_kwargs={"overwrite": False},
             seed_everything_default=0,
             auto_configure_optimizers=False,

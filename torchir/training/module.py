@@ -170,7 +170,7 @@ class InverseRenderingModule(pl.LightningModule):
         loss = self.loss_fn(images, targets)
         if not bool(torch.isfinite(loss)):
             self.nonfinite = (
-                f"the loss became {float(loss)} at step {self.global_step} (views {views}); the run stopped "
+                f"the loss became {loss.item()} at step {self.global_step} (views {views}); the run stopped "
                 f"before applying that step"
             )
             self.trainer.should_stop = True
