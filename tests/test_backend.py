@@ -10,7 +10,6 @@ import textwrap
 import drjit as dr
 import pytest
 
-import torchir
 from torchir import backend
 
 RENDER_SNIPPET = """

@@ -119,6 +119,7 @@ def test_config_errors_name_the_key(tmp_path, capsys, override, message):
         (["--model.parameters", '{"red.reflectance.valu": {}}'], "Did you mean 'red.reflectance.value'"),
         (["--model.parameters", '{"red.reflectance.value": {"init": [0.1, 0.2]}}'], "does not fit"),
         (["--model.spp", "0"], "model.spp must be >= 1"),
+        (["--model.spp_grad", "0"], "model.spp_grad must be >= 1"),
         (["--data.views", "[]"], "data.views is empty"),
         (["--data.views", "[3]"], "has 1 sensor"),
         (["--data.targets", "[missing.exr]"], "not found: 'missing.exr'"),

@@ -18,7 +18,9 @@ own values before their backward pass, so interleaved renders differentiate corr
 from __future__ import annotations
 
 import difflib
+import math
 import os
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -94,14 +96,7 @@ def _torch_shape(value: Any) -> tuple[tuple[int, ...], bool]:
 def _same_layout(got: tuple[int, ...], expected: tuple[int, ...]) -> bool:
     """Shapes match, up to leading/trailing singleton axes ((3,) vs (1, 3), () vs (1,))."""
     squeeze = lambda s: tuple(d for d in s if d != 1)  # noqa: E731
-    return got == expected or (squeeze(got) == squeeze(expected) and _numel(got) == _numel(expected))
-
-
-def _numel(shape: tuple[int, ...]) -> int:
-    n = 1
-    for d in shape:
-        n *= d
-    return n
+    return got == expected or (squeeze(got) == squeeze(expected) and math.prod(got) == math.prod(expected))
 
 
 class Scene:
@@ -296,17 +291,19 @@ class Scene:
 
     def _warn_discontinuous(self, name: str) -> None:
         integrator = type(self.integrator).__name__
-        if name in self._warned or "Projective" in integrator:
-            return
-        import warnings
+        if "Projective" not in integrator:
+            self.warn_once(
+                name,
+                f"{name!r} moves visibility edges, but the scene's integrator ({integrator}) "
+                f"differentiates only the interior term: gradients miss the boundary term. Use a "
+                f"projective integrator (prb_projective, direct_projective) for shape/pose parameters.",
+            )
 
-        self._warned.add(name)
-        warnings.warn(
-            f"{name!r} moves visibility edges, but the scene's integrator ({integrator}) "
-            f"differentiates only the interior term: gradients miss the boundary term. Use a "
-            f"projective integrator (prb_projective, direct_projective) for shape/pose parameters.",
-            stacklevel=4,
-        )
+    def warn_once(self, key: str, message: str) -> None:
+        """A ``UserWarning`` about this scene, issued once per ``key``."""
+        if key not in self._warned:
+            self._warned.add(key)
+            warnings.warn(message, stacklevel=4)
 
     # ------------------------------------------------------------- binding (used by functions/)
     def to_drjit(self, name: str, tensor: Any) -> Any:

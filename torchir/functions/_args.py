@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import mitsuba as mi
 import torch
@@ -9,6 +10,26 @@ import torch
 from ..scene import Scene
 
 _UINT32 = 2**32
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Validated sample counts, seeds and sensor of one render call."""
+
+    sensor: int
+    spp: int
+    seed: int
+    spp_grad: int
+    seed_grad: int
+
+
+def render_settings(scene: Scene, sensor: int, spp: object, seed: object, spp_grad: object | None, seed_grad: object | None) -> RenderSettings:
+    """Check the arguments every render Function takes; ``spp_grad`` defaults to ``spp``."""
+    spp = check_count("spp", spp)
+    spp_grad = spp if spp_grad is None else check_count("spp_grad", spp_grad)
+    seed, seed_grad = seeds(seed, seed_grad)
+    scene.sensor(sensor)
+    return RenderSettings(sensor=sensor, spp=spp, seed=seed, spp_grad=spp_grad, seed_grad=seed_grad)
 
 
 def check_scene(scene: object) -> Scene:

@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any
 
 import drjit as dr
 import mitsuba as mi
@@ -17,30 +15,21 @@ from ._passes import passes
 __all__ = ["render"]
 
 
-@dataclass(frozen=True)
-class _RenderSettings:
-    sensor: int
-    spp: int
-    seed: int
-    spp_grad: int
-    seed_grad: int
-
-
 class _RenderOp(BoundRenderOp):
     """Primal: ``integrator.render``; adjoint: ``integrator.render_backward`` (path replay),
     both through the scene's (frozen) :class:`~torchir.functions._passes.RenderPasses`."""
 
     def primal(self) -> mi.TensorXf:
-        s: _RenderSettings = self.settings
+        s: _args.RenderSettings = self.settings
         return passes(self.scene).primal(s.sensor, s.seed, s.spp)
 
     def adjoint(self, grad_out: mi.TensorXf) -> None:
-        s: _RenderSettings = self.settings
+        s: _args.RenderSettings = self.settings
         passes(self.scene).adjoint(s.sensor, grad_out, s.seed_grad, s.spp_grad, self.fresh)
 
 
 @dr.wrap(source="torch", target="drjit")
-def _render_drjit(scene: Scene, values: dict, grad_names: frozenset, settings: _RenderSettings):
+def _render_drjit(scene: Scene, values: dict, grad_names: frozenset, settings: _args.RenderSettings):
     native = {name: scene.to_drjit(name, value) for name, value in values.items()}
     return dr.custom(_RenderOp, scene, native, grad_names, settings)
 
@@ -84,11 +73,7 @@ def render(
         torch.Size([3])
     """
     scene = _args.check_scene(scene)
-    spp = _args.check_count("spp", spp)
-    spp_grad = spp if spp_grad is None else _args.check_count("spp_grad", spp_grad)
-    seed, seed_grad = _args.seeds(seed, seed_grad)
-    scene.sensor(sensor)
+    settings = _args.render_settings(scene, sensor, spp, seed, spp_grad, seed_grad)
     values, grad_names = _args.split_params(scene, params)
-    settings = _RenderSettings(sensor=sensor, spp=spp, seed=seed, spp_grad=spp_grad, seed_grad=seed_grad)
     image = _render_drjit(scene, values, grad_names, settings)  # (H, W, C)
     return image.permute(2, 0, 1)

@@ -8,7 +8,7 @@ reconstruction filter the result is an unbiased estimate of the same pixel value
 """
 from __future__ import annotations
 
-import warnings
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -24,12 +24,7 @@ __all__ = ["render_pixels"]
 
 
 @dataclass(frozen=True)
-class _PixelSettings:
-    sensor: int
-    spp: int
-    seed: int
-    spp_grad: int
-    seed_grad: int
+class _PixelSettings(_args.RenderSettings):
     index: mi.UInt32  # (N,) flat pixel indices; not differentiable
 
 
@@ -103,9 +98,10 @@ class _PixelRenderOp(BoundRenderOp):
 
 
 @dr.wrap(source="torch", target="drjit")
-def _render_pixels_drjit(scene: Scene, values: dict, index, grad_names: frozenset, settings: dict):
+def _render_pixels_drjit(scene: Scene, values: dict, index, grad_names: frozenset, settings: _args.RenderSettings):
     native = {name: scene.to_drjit(name, value) for name, value in values.items()}
-    return dr.custom(_PixelRenderOp, scene, native, grad_names, _PixelSettings(index=mi.UInt32(index.array), **settings))
+    pixel_settings = _PixelSettings(**dataclasses.asdict(settings), index=mi.UInt32(index.array))
+    return dr.custom(_PixelRenderOp, scene, native, grad_names, pixel_settings)
 
 
 def _check_integrator(scene: Scene) -> None:
@@ -122,15 +118,12 @@ def _check_integrator(scene: Scene) -> None:
 def _check_box_filter(scene: Scene, sensor: int) -> None:
     rfilter = scene.sensor(sensor).film().rfilter()
     if not type(rfilter).__name__.lower().startswith("box") and "BoxFilter" not in str(rfilter):
-        key = f"rfilter{sensor}"
-        if key not in scene._warned:
-            scene._warned.add(key)
-            warnings.warn(
-                f"sensor {sensor} uses a {type(rfilter).__name__} reconstruction filter: render_pixels "
-                f"estimates box-filtered pixels, which differ from this film's pixels. Use "
-                f"rfilter={{'type': 'box'}} (all built-in scenes do).",
-                stacklevel=3,
-            )
+        scene.warn_once(
+            f"rfilter{sensor}",
+            f"sensor {sensor} uses a {type(rfilter).__name__} reconstruction filter: render_pixels "
+            f"estimates box-filtered pixels, which differ from this film's pixels. Use "
+            f"rfilter={{'type': 'box'}} (all built-in scenes do).",
+        )
 
 
 def _check_index(index: object, pixel_count: int) -> torch.Tensor:
@@ -178,13 +171,10 @@ def render_pixels(
         torch.Size([4, 3])
     """
     scene = _args.check_scene(scene)
-    spp = _args.check_count("spp", spp)
-    spp_grad = spp if spp_grad is None else _args.check_count("spp_grad", spp_grad)
-    seed, seed_grad = _args.seeds(seed, seed_grad)
+    settings = _args.render_settings(scene, sensor, spp, seed, spp_grad, seed_grad)
     h, w = scene.sensor_resolution(sensor)
     index = _check_index(index, h * w)
     _check_integrator(scene)
     _check_box_filter(scene, sensor)
     values, grad_names = _args.split_params(scene, params)
-    settings = dict(sensor=sensor, spp=spp, seed=seed, spp_grad=spp_grad, seed_grad=seed_grad)
     return _render_pixels_drjit(scene, values, index, grad_names, settings)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import mitsuba as mi
 
 from ._common import bitmap, painting_texture, perspective, resolution_hw
 

@@ -73,7 +73,8 @@ class InverseRenderingModule(pl.LightningModule):
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["loss", "denoiser"])
-        for name, value in (("spp", spp), ("preview_spp", preview_spp)) + ((("spp_grad", spp_grad),) if spp_grad else ()):
+        counts = {"spp": spp, "preview_spp": preview_spp, **({} if spp_grad is None else {"spp_grad": spp_grad})}
+        for name, value in counts.items():
             if value < 1:
                 raise ValueError(f"model.{name} must be >= 1, got {value}")
         if lr <= 0:
@@ -92,17 +93,20 @@ class InverseRenderingModule(pl.LightningModule):
         self.scene_parameters = nn.ModuleList(self._build_parameter(key) for key in self.keys)
         self.loss_fn = _resolve_loss(loss)
         self.denoiser = denoiser
-        self.spp, self.spp_grad, self.seed, self.lr = spp, spp_grad or spp, seed, lr
+        self.spp, self.spp_grad, self.seed, self.lr = spp, spp if spp_grad is None else spp_grad, seed, lr
         self.optimizer_name, self.preview_spp = optimizer, preview_spp
         self.nonfinite: Optional[str] = None  # set when a non-finite loss stopped the run
 
     # ------------------------------------------------------------------------ parameters
     def _build_parameter(self, key: str) -> SceneParameter:
-        config = self.configs[key]
-        scene_value = self.scene.get(key)  # KeyError with close matches for unknown keys
-        initial = resolve_value(config.init, scene_value.shape, scene_value, config.bounds, config.seed, f"parameters[{key!r}].init")
+        initial = self._config_value(key, self.configs[key].init, "init")  # KeyError with close matches
         self.scene.check_values({key: initial.requires_grad_()})  # dtype, shape, differentiable, finite
-        return SceneParameter(key, initial.detach(), config)
+        return SceneParameter(key, initial.detach(), self.configs[key])
+
+    def _config_value(self, key: str, spec, field: str) -> torch.Tensor:
+        """A config value (``init``/``truth`` forms) of parameter ``key`` as a tensor of its shape."""
+        config, scene_value = self.configs[key], self.scene.get(key)
+        return resolve_value(spec, scene_value.shape, scene_value, config.bounds, config.seed, f"parameters[{key!r}].{field}")
 
     def scene_values(self) -> dict[str, torch.Tensor]:
         """``{Mitsuba key: current value}`` (differentiable w.r.t. the latents)."""
@@ -113,12 +117,10 @@ class InverseRenderingModule(pl.LightningModule):
         (``explicit_only``: only the configured ones)."""
         truth = {}
         for key in self.keys:
-            config = self.configs[key]
-            if config.truth is None and explicit_only:
+            spec = self.configs[key].truth
+            if spec is None and explicit_only:
                 continue
-            scene_value = self.scene.get(key)
-            spec = "scene" if config.truth is None else config.truth
-            truth[key] = resolve_value(spec, scene_value.shape, scene_value, config.bounds, config.seed, f"parameters[{key!r}].truth")
+            truth[key] = self._config_value(key, "scene" if spec is None else spec, "truth")
         return truth
 
     @torch.no_grad()
