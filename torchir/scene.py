@@ -24,7 +24,7 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import drjit as dr
 import mitsuba as mi
@@ -32,7 +32,7 @@ import torch
 
 from . import backend
 
-__all__ = ["Scene", "ParameterInfo"]
+__all__ = ["Scene", "ParameterInfo", "DerivedParameter"]
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,18 @@ class ParameterInfo:
     bindable: bool  # can be given a torch tensor (float arrays and tensors)
     differentiable: bool  # Mitsuba marks it differentiable
     discontinuous: bool  # moving it moves visibility edges (needs a projective integrator)
+
+
+@dataclass(frozen=True)
+class DerivedParameter:
+    """A torch-side reparameterisation: ``name`` is optimised, ``target`` (a Mitsuba key) is
+    bound to ``to_target(value)``, computed in torch before the Dr.Jit boundary."""
+
+    name: str
+    target: str
+    shape: tuple[int, ...]
+    to_target: Callable[[torch.Tensor], torch.Tensor]
+    value: tuple[float, ...]  # the load-time value (flattened)
 
 
 # Keys whose change moves visibility edges. (Mitsuba also flags BSDF roughness "discontinuous",
@@ -124,6 +136,7 @@ class Scene:
         self._overridden: set[str] = set()
         self._owner: object | None = None  # the render op whose grad-enabled values are bound
         self._warned: set[str] = set()
+        self.derived: dict[str, DerivedParameter] = {}  # reparameterisations declared by the scene
 
     # ----------------------------------------------------------------------------- loading
     @classmethod
@@ -140,7 +153,10 @@ class Scene:
         entry = scenes.get(name)
         backend.variant()
         scene_dict = entry.build(resolution=resolution, **options)
-        return cls(mi.load_dict(scene_dict, optimize=False), name=name, description=entry.description)
+        derived = scene_dict.pop("torchir_derived", ())
+        scene = cls(mi.load_dict(scene_dict, optimize=False), name=name, description=entry.description)
+        scene.derived = {d.name: d for d in derived}
+        return scene
 
     @classmethod
     def from_file(cls, path: str | os.PathLike, optimize: bool = False, **scene_args: Any) -> Scene:
@@ -196,7 +212,7 @@ class Scene:
     def parameter_names(self, differentiable_only: bool = False) -> list[str]:
         """Mitsuba keys of the scene's parameters (``differentiable_only``: those Mitsuba
         marks differentiable and torch can bind)."""
-        names = list(self.params.keys())
+        names = list(self.params.keys()) + list(self.derived)
         if differentiable_only:
             names = [n for n in names if self.info(n).differentiable and self.info(n).bindable]
         return names
@@ -204,6 +220,8 @@ class Scene:
     def info(self, name: str) -> ParameterInfo:
         """Type, torch shape and flags of parameter ``name``."""
         self._require_name(name)
+        if name in self.derived:
+            return ParameterInfo(name, "derived", self.derived[name].shape, True, True, False)
         if name not in self._info:
             value = self._base.get(name, self.params[name])
             shape, bindable = _torch_shape(value)
@@ -221,6 +239,8 @@ class Scene:
     def get(self, name: str) -> torch.Tensor:
         """A torch copy of parameter ``name`` as loaded (shape as in the module docstring)."""
         info = self.info(name)
+        if name in self.derived:
+            return torch.tensor(self.derived[name].value, dtype=torch.float32).reshape(info.shape)
         value = self._base.get(name, self.params[name])
         if dr.is_tensor_v(value) or _is_flat_float(value):
             out = value.torch()
@@ -240,7 +260,7 @@ class Scene:
     def _require_name(self, name: str) -> None:
         if not isinstance(name, str):
             raise TypeError(f"parameter names are strings, got {type(name).__name__}")
-        if name not in self.params:
+        if name not in self.params and name not in self.derived:
             close = difflib.get_close_matches(name, list(self.params.keys()), n=3, cutoff=0.5)
             hint = f" Did you mean {', '.join(repr(c) for c in close)}?" if close else ""
             raise KeyError(
@@ -277,7 +297,7 @@ class Scene:
                 raise ValueError(
                     f"params[{name!r}] has shape {tuple(tensor.shape)}, expected {info.shape}{hint}"
                 )
-            if tensor.requires_grad and not info.differentiable:
+            if tensor.requires_grad and not info.differentiable and self._detaches(name):
                 raise ValueError(
                     f"parameter {name!r} is marked non-differentiable by Mitsuba (its integrators "
                     f"produce no derivative for it, e.g. point-light positions under prb): detach it, "
@@ -288,6 +308,29 @@ class Scene:
                 raise ValueError(f"params[{name!r}] has {bad} NaN/Inf entries")
             if tensor.requires_grad and info.discontinuous and name.rsplit(".", 1)[-1] in _GEOMETRY_KEYS:
                 self._warn_discontinuous(name)
+
+    def _detaches(self, name: str) -> bool:
+        """Whether the integrator really gives parameter ``name`` (flagged non-differentiable by
+        Mitsuba) no derivative: Mitsuba's Python path-replay integrators (prb, direct_projective,
+        ...) detach it; the C++ integrators (direct, path) record it in their AD graph."""
+        from mitsuba.python.ad.integrators.common import ADIntegrator
+
+        return isinstance(self.integrator, ADIntegrator)
+
+    def expand_derived(self, values: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """``values`` with every derived parameter replaced by its Mitsuba target (in torch,
+        differentiably); the targets are validated like any bound value."""
+        if not any(name in self.derived for name in values):
+            return dict(values)
+        out = {n: t for n, t in values.items() if n not in self.derived}
+        targets = {}
+        for name in values.keys() & self.derived.keys():
+            d = self.derived[name]
+            if d.target in values:
+                raise ValueError(f"params gives both {name!r} and the parameter it sets, {d.target!r}: pass one")
+            targets[d.target] = d.to_target(values[name]).to(torch.float32).reshape(self.info(d.target).shape)
+        self.check_values(targets)
+        return {**out, **targets}
 
     def _warn_discontinuous(self, name: str) -> None:
         integrator = type(self.integrator).__name__
@@ -351,6 +394,11 @@ class Scene:
         self._overridden = set(values)
         self._owner = owner if fresh else None
         return fresh
+
+    @property
+    def bound_names(self) -> frozenset[str]:
+        """Names of the parameters currently bound to non-loaded values."""
+        return frozenset(self._overridden)
 
     def owns_live_binding(self, owner: object) -> bool:
         """Whether ``owner``'s grad-enabled values are bound with unused AD edges."""

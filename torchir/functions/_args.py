@@ -72,6 +72,7 @@ def split_params(scene: Scene, params: Mapping[str, torch.Tensor] | None) -> tup
     """Validated ``{name: tensor}`` and the names to differentiate (those requiring grad)."""
     params = {} if params is None else params
     scene.check_values(params)
+    params = scene.expand_derived(params)  # derived parameters (e.g. light.azimuth) -> Mitsuba keys
     # dr.wrap converts only exact torch.Tensor objects: view subclasses such as nn.Parameter
     # as plain tensors (a differentiable view, so gradients still reach the Parameter).
     values = {n: t if type(t) is torch.Tensor else t.as_subclass(torch.Tensor) for n, t in params.items()}

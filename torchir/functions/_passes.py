@@ -6,6 +6,11 @@ pass records its kernels once per configuration (sensor, spp, AD status of the b
 and replays them with new inputs: new seeds (passed opaque) and new parameter values. Binding
 stays *outside* the frozen functions (binding inside crashed on replay), and gradients are
 read after the frozen adjoint returns (read inside, a texture's gradient came back as zero).
+A render that binds a tensor parameter with other than 3 channels (a 1-channel bitmap, a volume
+grid) or a geometry parameter (vertex positions, transforms) runs unfrozen: replaying a frozen
+pass after re-binding a 1-channel bitmap read stale memory (values of 1e18-1e26), and after
+moving a mesh it traced rays against the recorded geometry (Dr.Jit 1.5, Mitsuba 3.9); RGB
+textures and BSDF/emitter values replay exactly.
 """
 from __future__ import annotations
 
@@ -57,8 +62,19 @@ class RenderPasses:
         """How many times the frozen passes were traced (stays constant once warm)."""
         return self._primal.n_recordings + self._adjoint.n_recordings
 
+    def _replayable(self) -> bool:
+        """Frozen passes are on, no geometry is bound, and every bound tensor is an RGB texture."""
+        if not self.frozen:
+            return False
+        scene, params = self.scene, self.scene.params
+        return all(
+            not scene.info(name).discontinuous
+            and (not dr.is_tensor_v(params[name]) or (len(params[name].shape) == 3 and params[name].shape[-1] == 3))
+            for name in scene.bound_names
+        )
+
     def primal(self, sensor: int, seed: int, spp: int) -> mi.TensorXf:
-        if self.frozen:
+        if self._replayable():
             try:
                 return self._primal(self.scene.mi_scene, sensor, dr.opaque(mi.UInt32, seed), spp)
             except Exception as error:  # noqa: BLE001 - fall back, loudly, rather than fail the run
@@ -66,7 +82,7 @@ class RenderPasses:
         return _primal(self.scene.mi_scene, sensor, seed, spp)
 
     def adjoint(self, sensor: int, grad_out: mi.TensorXf, seed: int, spp: int, params: dict) -> None:
-        if self.frozen:
+        if self._replayable():
             try:
                 return self._adjoint(self.scene.mi_scene, sensor, grad_out, dr.opaque(mi.UInt32, seed), spp, params)
             except Exception as error:  # noqa: BLE001

@@ -11,6 +11,7 @@ from ..scene import Scene
 from . import _args
 from ._bound_op import BoundRenderOp
 from ._passes import passes
+from ._restir_op import render_restir_drjit
 
 __all__ = ["render"]
 
@@ -34,6 +35,18 @@ def _render_drjit(scene: Scene, values: dict, grad_names: frozenset, settings: _
     return dr.custom(_RenderOp, scene, native, grad_names, settings)
 
 
+def _check_sampler(scene: Scene, sampler: object) -> None:
+    from ..samplers.restir import ReSTIRSampler
+
+    if not isinstance(sampler, ReSTIRSampler):
+        raise TypeError(
+            f"render(sampler=...) takes a torchir.samplers.ReSTIRSampler, got {type(sampler).__name__} "
+            f"(pixel samplers go through render_pixels)"
+        )
+    if sampler.scene is not scene:
+        raise ValueError("the ReSTIRSampler was built for another Scene: build one per scene")
+
+
 def render(
     scene: Scene,
     params: Mapping[str, torch.Tensor] | None = None,
@@ -42,6 +55,7 @@ def render(
     sensor: int = 0,
     spp_grad: int | None = None,
     seed_grad: int | None = None,
+    sampler: object | None = None,
 ) -> torch.Tensor:
     """Render ``scene`` with ``params`` bound, differentiably, as a torch tensor.
 
@@ -61,6 +75,9 @@ def render(
         spp_grad: samples per pixel of the gradient pass (default: ``spp``).
         seed_grad: seed of the gradient pass (default: a hash of ``seed``; must differ from it,
             so that the gradient is independent of the image noise).
+        sampler: a :class:`torchir.samplers.ReSTIRSampler` of this scene: render direct
+            illumination by ReSTIR (its reservoirs advance by one step) and back-propagate
+            its interior-term gradient (paper 004). ``None``: the scene's integrator.
 
     Returns:
         ``(C, H, W)`` float32 linear radiance (C = 3 for RGB films).
@@ -75,5 +92,9 @@ def render(
     scene = _args.check_scene(scene)
     settings = _args.render_settings(scene, sensor, spp, seed, spp_grad, seed_grad)
     values, grad_names = _args.split_params(scene, params)
+    if sampler is not None:
+        _check_sampler(scene, sampler)
+        image = render_restir_drjit(scene, values, grad_names, settings, sampler)  # (H, W, C)
+        return image.permute(2, 0, 1)
     image = _render_drjit(scene, values, grad_names, settings)  # (H, W, C)
     return image.permute(2, 0, 1)

@@ -45,17 +45,39 @@ def relative_l2_loss(rendered: torch.Tensor, target: torch.Tensor, eps: float = 
     return _reduce((rendered - target).square() / (target.detach().square() + eps), reduction)
 
 
-class L1Loss(nn.Module):
-    """Module twin of :func:`l1_loss`."""
+class _PixelLoss(nn.Module):
+    """A loss that reduces per-element terms: usable with pixel sampling (``pixelwise``)."""
 
-    pixelwise = True  # a sum of per-pixel terms: usable with pixel sampling
+    pixelwise = True
+    reduction = "mean"
+
+    def forward(self, rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return _reduce(self.elementwise(rendered, target), self.reduction)
+
+    def elementwise(self, rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def pixel_terms(self, rendered: torch.Tensor, target: torch.Tensor, pixel_count: int) -> torch.Tensor:
+        """Per-pixel terms ``l_j`` with ``loss(image) = mean_j l_j`` over the ``pixel_count``
+        pixels of the full images; ``rendered``, ``target``: ``(N, C)`` -> ``(N,)``."""
+        terms = self.elementwise(rendered, target)
+        if self.reduction == "mean":
+            return terms.mean(-1)
+        if self.reduction == "sum":
+            return terms.sum(-1) * pixel_count
+        raise ValueError("pixel sampling needs a loss with reduction 'mean' or 'sum', not 'none'")
+
+
+class L1Loss(_PixelLoss):
+    """Module twin of :func:`l1_loss`."""
 
     def __init__(self, reduction: str = "mean") -> None:
         super().__init__()
+        _check(torch.zeros(1), torch.zeros(1), reduction)
         self.reduction = reduction
 
-    def forward(self, rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return l1_loss(rendered, target, self.reduction)
+    def elementwise(self, rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return l1_loss(rendered, target, "none")
 
     def extra_repr(self) -> str:
         return f"reduction={self.reduction!r}"
@@ -64,23 +86,22 @@ class L1Loss(nn.Module):
 class L2Loss(L1Loss):
     """Module twin of :func:`l2_loss`."""
 
-    def forward(self, rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return l2_loss(rendered, target, self.reduction)
+    def elementwise(self, rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return l2_loss(rendered, target, "none")
 
 
-class RelativeL2Loss(nn.Module):
+class RelativeL2Loss(_PixelLoss):
     """Module twin of :func:`relative_l2_loss`."""
-
-    pixelwise = True
 
     def __init__(self, eps: float = 1e-2, reduction: str = "mean") -> None:
         super().__init__()
         if eps <= 0:
             raise ValueError(f"eps must be > 0, got {eps}")
+        _check(torch.zeros(1), torch.zeros(1), reduction)
         self.eps, self.reduction = eps, reduction
 
-    def forward(self, rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return relative_l2_loss(rendered, target, self.eps, self.reduction)
+    def elementwise(self, rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return relative_l2_loss(rendered, target, self.eps, "none")
 
     def extra_repr(self) -> str:
         return f"eps={self.eps}, reduction={self.reduction!r}"

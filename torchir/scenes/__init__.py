@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from . import cbox, glossy_ball, multiview, painting
+from . import cbox, glossy_ball, glossy_highlight, multiview, oxalis_lite, painting, textured_wall
 
 __all__ = ["available", "get", "BuiltinScene"]
 
@@ -34,6 +34,9 @@ _REGISTRY = {
         BuiltinScene("painting", painting.DESCRIPTION, painting.build, painting.PARAMETERS),
         BuiltinScene("glossy_ball", glossy_ball.DESCRIPTION, glossy_ball.build, glossy_ball.PARAMETERS),
         BuiltinScene("multiview", multiview.DESCRIPTION, multiview.build, multiview.PARAMETERS),
+        BuiltinScene("textured_wall", textured_wall.DESCRIPTION, textured_wall.build, textured_wall.PARAMETERS),
+        BuiltinScene("glossy_highlight", glossy_highlight.DESCRIPTION, glossy_highlight.build, glossy_highlight.PARAMETERS),
+        BuiltinScene("oxalis_lite", oxalis_lite.DESCRIPTION, oxalis_lite.build, oxalis_lite.PARAMETERS),
     )
 }
 

@@ -7,8 +7,8 @@ shadow are first-hit effects. A dim constant environment keeps the unlit side vi
 The light is placed by the ``azimuth`` option. Differentiable unknowns: ``ball.bsdf.alpha``
 (roughness, shape (1,)) and ``ball.bsdf.diffuse_reflectance.value`` (3,). Mitsuba 3.9 gives no
 derivative for a point light's ``position`` under ``prb`` (it samples the light detached), so
-torchir rejects ``light.position`` with requires_grad; recovering the light needs a
-differentiable light parameterisation (the LOI issue's job).
+torchir rejects ``light.position`` with requires_grad here; to recover a light, use the
+``glossy_highlight`` scene (C++ ``direct`` integrator, derived parameter ``light.azimuth``).
 """
 from __future__ import annotations
 

@@ -10,8 +10,7 @@ import torch
 from torch import nn
 
 from .. import Scene
-from ..functions import render
-from ..modules.losses import PIXEL_LOSSES
+from ..functions import render, render_pixels
 from .parameters import ParameterConfig, SceneParameter, resolve_value
 
 __all__ = ["InverseRenderingModule", "NonFiniteLossError"]
@@ -47,7 +46,15 @@ class InverseRenderingModule(pl.LightningModule):
             unknowns, initialised to 0.5.
         loss: ``"l1"``, ``"l2"``, ``"relative_l2"`` or any ``nn.Module`` ``(rendered, target) -> scalar``
             (by class path in YAML).
-        denoiser: an optional ``nn.Module`` ``(noisy, target) -> denoised``.
+            A mapping ``{type: <name in torchir.modules.LOSSES>, **options}`` selects any
+            registered loss with options (e.g. ``{type: loi, alphas: [1, 5]}``).
+        denoiser: an optional ``nn.Module`` ``(noisy, target) -> denoised``, or
+            ``{type: <name in torchir.modules.DENOISERS>, **options}``.
+        sampler: an optional ``{type: <name in torchir.samplers.SAMPLERS>, **options}``, built
+            as ``SAMPLERS[type](scene, **options)``. A pixel sampler (``uniform``, ``loss``,
+            ``adaptive``) switches to pixel-sampling mode: each step renders only the drawn
+            pixels with :func:`~torchir.functions.render_pixels` and minimises the importance-
+            weighted loss (paper 000, E16), refreshing the sampler's pmf on its schedule.
         spp, spp_grad: samples per pixel of the primal image and of the gradient pass.
         seed: base seed; step ``t`` renders view ``v`` with a seed derived from (seed, t, v) only,
             so runs, resumed runs and multi-process runs see the same random numbers.
@@ -62,8 +69,9 @@ class InverseRenderingModule(pl.LightningModule):
         resolution: Optional[Union[int, tuple[int, int]]] = None,
         scene_options: Optional[dict[str, Any]] = None,
         parameters: Optional[dict[str, ParameterConfig]] = None,
-        loss: Union[str, nn.Module] = "l2",
-        denoiser: Optional[nn.Module] = None,
+        loss: Union[str, nn.Module, dict[str, Any]] = "l2",
+        denoiser: Optional[Union[nn.Module, dict[str, Any]]] = None,
+        sampler: Optional[dict[str, Any]] = None,
         spp: int = 8,
         spp_grad: Optional[int] = None,
         seed: int = 0,
@@ -92,7 +100,16 @@ class InverseRenderingModule(pl.LightningModule):
         self.keys = list(self.configs)
         self.scene_parameters = nn.ModuleList(self._build_parameter(key) for key in self.keys)
         self.loss_fn = _resolve_loss(loss)
-        self.denoiser = denoiser
+        self.denoiser = _resolve_denoiser(denoiser)
+        self.sampler = _resolve_sampler(sampler, self.scene)
+        if self.pixel_mode:
+            if not getattr(self.loss_fn, "pixelwise", False) or not hasattr(self.loss_fn, "pixel_terms"):
+                raise ValueError(
+                    f"model.loss {type(self.loss_fn).__name__} couples pixels: it cannot be used with the pixel sampler "
+                    f"{self.sampler.strategy!r}; use l1, l2 or relative_l2, or drop model.sampler"
+                )
+            if self.denoiser is not None:
+                raise ValueError("a denoiser needs full images: it cannot be combined with a pixel sampler (model.sampler)")
         self.spp, self.spp_grad, self.seed, self.lr = spp, spp if spp_grad is None else spp_grad, seed, lr
         self.optimizer_name, self.preview_spp = optimizer, preview_spp
         self.nonfinite: Optional[str] = None  # set when a non-finite loss stopped the run
@@ -145,10 +162,12 @@ class InverseRenderingModule(pl.LightningModule):
         return (self.seed * _GOLDEN + step * self.scene.sensor_count + view) % 2**32
 
     def render_views(self, views: list[int], step: int) -> torch.Tensor:
-        """Differentiable renders of ``views`` at ``step``, ``(B, C, H, W)``."""
+        """Differentiable renders of ``views`` at ``step``, ``(B, C, H, W)`` (through the ReSTIR
+        sampler when one is set)."""
         values = self.scene_values()
+        extra = {} if self.sampler is None or self.pixel_mode else {"sampler": self.sampler}
         images = [
-            render(self.scene, values, spp=self.spp, seed=self.step_seed(step, v), sensor=v, spp_grad=self.spp_grad)
+            render(self.scene, values, spp=self.spp, seed=self.step_seed(step, v), sensor=v, spp_grad=self.spp_grad, **extra)
             for v in views
         ]
         return torch.stack(images)
@@ -163,13 +182,84 @@ class InverseRenderingModule(pl.LightningModule):
     def forward(self, views: list[int], step: int = 0) -> torch.Tensor:
         return self.render_views(views, step)
 
+    @torch.no_grad()
+    def guide_buffers(self, views: list[int], step: int) -> torch.Tensor:
+        """G-buffers (albedo, normal, depth) of ``views`` for a G-buffer denoiser, ``(B, 7, H, W)``,
+        rendered before the differentiable render so they never disturb its AD graph."""
+        from ..functions import render_gbuffers
+
+        values = {k: v.detach() for k, v in self.scene_values().items()}
+        return torch.stack([render_gbuffers(self.scene, values, sensor=v, seed=self.step_seed(step, v)) for v in views])
+
+    def denoise(self, images: torch.Tensor, targets: torch.Tensor, views: list[int], guide: Optional[torch.Tensor]) -> torch.Tensor:
+        """Apply the denoiser, passing ``guide`` and ``views`` to denoisers that take them."""
+        import inspect
+
+        accepted = inspect.signature(self.denoiser.forward).parameters
+        kwargs: dict[str, Any] = {}
+        if guide is not None:
+            kwargs["guide"] = guide
+        if "views" in accepted:
+            kwargs["views"] = views
+        return self.denoiser(images, targets, **kwargs)
+
+    @property
+    def pixel_mode(self) -> bool:
+        """Whether steps render sampled pixels (a pixel sampler is set) instead of full images."""
+        from ..samplers import PixelSampler
+
+        return isinstance(self.sampler, PixelSampler)
+
+    def refresh_sampler(self, step: int) -> bool:
+        """Run the pixel sampler's Stage 1 if it is due at ``step``; True if it ran."""
+        data = self.trainer.datamodule if self._trainer is not None else None
+        if data is None or not getattr(data, "targets", None):
+            raise RuntimeError("pixel sampling needs the target views of a ViewDataModule (trainer.datamodule)")
+        values = self.scene_values()
+        if not self.sampler.due(step, values, data.views):
+            return False
+        self.sampler.update(values, data.targets, self.loss_fn, views=data.views, step=step)
+        return True
+
+    def sampled_loss(self, views: list[int], targets: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """The importance-weighted loss of one pixel batch (paper 000, E16), its weighted squared
+        error (for logging) and the number of paths traced."""
+        batch = self.sampler.sample(views)
+        h, w = self.scene.resolution
+        view_of, local = batch.index // (h * w), batch.index % (h * w)
+        values = self.scene_values()
+        rendered, wanted, weights = [], [], []
+        for position, view in enumerate(views):
+            chosen = (view_of == view).nonzero().squeeze(1)
+            if chosen.numel() == 0:
+                continue
+            pixels = local[chosen]
+            rendered.append(render_pixels(self.scene, values, pixels, spp=self.spp, seed=self.step_seed(step, view), sensor=view, spp_grad=self.spp_grad))
+            wanted.append(targets[position].flatten(1).t()[pixels])
+            weights.append(batch.weight[chosen])
+        radiance, target, weight = torch.cat(rendered), torch.cat(wanted), torch.cat(weights)
+        terms = self.loss_fn.pixel_terms(radiance, target, len(views) * h * w)
+        error = (weight * (radiance.detach() - target).square().mean(-1)).sum()
+        return (weight * terms).sum(), error, batch.index.numel() * (self.spp + self.spp_grad)
+
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> Optional[torch.Tensor]:
         views = [int(v) for v in batch["view"]]
         targets = batch["target"]
-        images = self.render_views(views, self.global_step)
-        if self.denoiser is not None:
-            images = self.denoiser(images, targets)
-        loss = self.loss_fn(images, targets)
+        step = self.global_step
+        stage1_paths = 0.0
+        if self.pixel_mode:
+            if self.refresh_sampler(step):
+                stage1_paths = self.sampler.diagnostics().get("stage1_paths", 0.0)
+            loss, image_error, paths = self.sampled_loss(views, targets, step)
+        else:
+            guide = self.guide_buffers(views, step) if getattr(self.denoiser, "needs_guide", False) else None
+            images = self.render_views(views, step)
+            if self.denoiser is not None:
+                images = self.denoise(images, targets, views, guide)
+            loss = self.loss_fn(images, targets)
+            image_error = (images.detach() - targets).square().mean()
+            h, w = self.scene.resolution
+            paths = len(views) * h * w * (self.spp + self.spp_grad)
         if not bool(torch.isfinite(loss)):
             self.nonfinite = (
                 f"the loss became {loss.item()} at step {self.global_step} (views {views}); the run stopped "
@@ -179,9 +269,11 @@ class InverseRenderingModule(pl.LightningModule):
             return None  # Lightning skips backward and the optimiser step
         batch_size = len(views)
         self.log("loss", loss, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True)
-        self.log("image_error", (images.detach() - targets).square().mean(), on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True)
-        h, w = self.scene.resolution
-        self.log("paths_per_step", float(batch_size * h * w * (self.spp + self.spp_grad)), on_step=True, on_epoch=False, batch_size=batch_size, reduce_fx="sum", sync_dist=True)
+        self.log("image_error", image_error, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True)
+        self.log("paths_per_step", float(paths + stage1_paths), on_step=True, on_epoch=False, batch_size=batch_size, reduce_fx="sum", sync_dist=True)
+        if self.sampler is not None and hasattr(self.sampler, "diagnostics"):
+            for name, value in self.sampler.diagnostics().items():
+                self.log(f"sampler/{name}", float(value), on_step=True, on_epoch=False, batch_size=batch_size)
         error = self.parameter_error(self._truth)
         if error is not None:
             self.log("param_error", error, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size)
@@ -208,6 +300,14 @@ class InverseRenderingModule(pl.LightningModule):
 
         return [ParameterProjection(), StepTimer(), NonFiniteLossGuard()]
 
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if self.sampler is not None and hasattr(self.sampler, "state_dict"):
+            checkpoint["torchir_sampler"] = _to_checkpoint(self.sampler.state_dict())
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if self.sampler is not None and "torchir_sampler" in checkpoint:
+            self.sampler.load_state_dict(_from_checkpoint(checkpoint["torchir_sampler"]))
+
     @property
     def results_dir(self) -> Path:
         """Where this run writes its outputs (the logger's version folder)."""
@@ -233,9 +333,75 @@ def _as_config(key: str, config: Any) -> ParameterConfig:
     raise TypeError(f"parameters[{key!r}] must be a mapping of ParameterConfig fields, got {type(config).__name__}")
 
 
-def _resolve_loss(loss: Union[str, nn.Module]) -> nn.Module:
+def _to_checkpoint(state: Any) -> Any:
+    """Sampler state with numpy arrays and scalars as torch tensors and Python numbers, so that
+    ``torch.load(weights_only=True)`` (Lightning's default on resume) accepts the checkpoint."""
+    import numpy as np
+
+    if isinstance(state, np.ndarray):
+        return {"__ndarray__": torch.from_numpy(np.ascontiguousarray(state).copy())}
+    if isinstance(state, np.generic):
+        return state.item()
+    if isinstance(state, dict):
+        return {k: _to_checkpoint(v) for k, v in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(_to_checkpoint(v) for v in state)
+    return state
+
+
+def _from_checkpoint(state: Any) -> Any:
+    if isinstance(state, dict):
+        if set(state) == {"__ndarray__"}:
+            return state["__ndarray__"].numpy()
+        return {k: _from_checkpoint(v) for k, v in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(_from_checkpoint(v) for v in state)
+    return state
+
+
+def _registered(section: str, spec: Any, registry: dict[str, type], *args: Any) -> Any:
+    """Build ``registry[spec["type"]](*args, **options)`` from a ``{type: name, **options}`` mapping."""
+    spec = dict(spec)
+    name = spec.pop("type", None)
+    if name not in registry:
+        raise ValueError(f"model.{section}.type must be one of {sorted(registry)}, got {name!r}")
+    try:
+        return registry[name](*args, **spec)
+    except TypeError as error:
+        raise ValueError(f"model.{section} ({name}): {error}") from error
+
+
+def _resolve_loss(loss: Union[str, nn.Module, dict[str, Any]]) -> nn.Module:
+    from ..modules import LOSSES
+
     if isinstance(loss, nn.Module):
         return loss
-    if isinstance(loss, str) and loss in PIXEL_LOSSES:
-        return PIXEL_LOSSES[loss]()
-    raise ValueError(f"model.loss must be one of {sorted(PIXEL_LOSSES)} or an nn.Module class path, got {loss!r}")
+    if isinstance(loss, str) and loss in LOSSES:
+        return LOSSES[loss]()
+    if isinstance(loss, dict):
+        return _registered("loss", loss, LOSSES)
+    raise ValueError(f"model.loss must be one of {sorted(LOSSES)}, {{type: name, ...options}} or an nn.Module class path, got {loss!r}")
+
+
+def _resolve_denoiser(denoiser: Optional[Union[nn.Module, dict[str, Any]]]) -> Optional[nn.Module]:
+    from ..modules import DENOISERS
+
+    if denoiser is None or isinstance(denoiser, nn.Module):
+        return denoiser
+    if isinstance(denoiser, dict):
+        if denoiser.get("type") in (None, "none"):
+            return None
+        return _registered("denoiser", denoiser, DENOISERS)
+    raise ValueError(f"model.denoiser must be {{type: name, ...options}} or an nn.Module class path, got {denoiser!r}")
+
+
+def _resolve_sampler(sampler: Optional[dict[str, Any]], scene: Scene) -> Any:
+    from ..samplers import SAMPLERS
+
+    if sampler is None:
+        return None
+    if not isinstance(sampler, dict):
+        raise ValueError(f"model.sampler must be a mapping {{type: name, ...options}}, got {sampler!r}")
+    if sampler.get("type") == "none":
+        return None
+    return _registered("sampler", sampler, SAMPLERS, scene)

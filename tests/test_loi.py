@@ -1,0 +1,380 @@
+"""LOI loss (paper 003), its blur and the multi-scale baselines (spec loi-loss.md, section 6.1)."""
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+from torchir.modules import (
+    LOSSES,
+    GaussianPyramidLoss,
+    LOILoss,
+    MultiScaleL1Loss,
+    MultiScaleL2Loss,
+    gaussian_pyramid_loss,
+    loi_loss,
+    multiscale_l1_loss,
+    multiscale_l2_loss,
+)
+from torchir.modules._blur import blur, blur_adjoint, gaussian_matrix
+
+D64 = torch.float64
+
+
+def _rand(*shape, seed=0, lo=0.0, hi=1.0, dtype=torch.float32):
+    g = torch.Generator().manual_seed(seed)
+    return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=dtype)
+
+
+def _disk(cx: torch.Tensor, n: int = 64, r: float = 4.0, value: float = 0.8, cy: float | None = None) -> torch.Tensor:
+    """(1, 1, n, n) anti-aliased grey disk at (cx, cy), differentiable in cx."""
+    cy = n / 2 if cy is None else cy
+    yy, xx = torch.meshgrid(torch.arange(n, dtype=D64) + 0.5, torch.arange(n, dtype=D64) + 0.5, indexing="ij")
+    d = ((xx - cx) ** 2 + (yy - cy) ** 2).sqrt()
+    return (value * torch.sigmoid((r - d) * 4.0)).view(1, 1, n, n)
+
+
+# ------------------------------------------------------------------------------------ blur
+def test_blur_matrix_rows_sum_to_one_and_handle_huge_kernels():
+    for n, s in [(1, 3.0), (7, 0.5), (32, 45.0), (5, 1000.0)]:
+        m = gaussian_matrix(n, s, dtype=D64)
+        assert m.shape == (n, n)
+        assert torch.allclose(m.sum(1), torch.ones(n, dtype=D64), atol=1e-12)
+    x = _rand(2, 3, 32, 20)
+    y = blur(x, 45.0)  # kornia's reflect padding raises here (radius >= image size)
+    assert y.shape == x.shape and torch.isfinite(y).all()
+    assert torch.equal(blur(x, 0.0), x)
+
+
+def test_blur_matches_kornia_in_the_interior():
+    kornia = pytest.importorskip("kornia")
+    x = _rand(1, 2, 48, 48, dtype=D64)
+    ours = blur(x, 2.0)
+    ref = kornia.filters.gaussian_blur2d(x, (13, 13), (2.0, 2.0), border_type="reflect")
+    assert torch.allclose(ours[..., 8:-8, 8:-8], ref[..., 8:-8, 8:-8], atol=1e-6)
+
+
+def test_blur_adjoint_is_the_transpose():
+    x, g = _rand(1, 1, 9, 6, dtype=D64), _rand(1, 1, 9, 6, seed=1, dtype=D64)
+    assert torch.allclose((blur(x, 2.0) * g).sum(), (x * blur_adjoint(g, 2.0)).sum(), rtol=1e-12)
+
+
+# ---------------------------------------------------------------------- histograms (6.1.1, .10)
+@pytest.mark.parametrize("sigma", [0, 1, 5, 45])
+@pytest.mark.parametrize("alpha", [0, 1, 5, 45])
+def test_histograms_sum_to_one_everywhere(sigma, alpha):
+    img = _rand(1, 3, 32, 32, lo=-0.5, hi=1.5)
+    img[0, 0, :4] = 50.0  # far outside the range, on the border rows
+    h = LOILoss().histograms(img, sigma, alpha)
+    assert h.shape == (1, 3, 16, 32, 32)  # K + 1 = (8 + 2*3 + 1) + 1 bins
+    assert (h >= -1e-6).all()
+    assert torch.allclose(h.sum(2), torch.ones(1, 3, 32, 32), atol=1e-5)
+
+
+def test_cdfs_shape_and_monotone():
+    c = LOILoss(beta=0.25, border="renormalize").cdfs(_rand(2, 1, 5, 7), 1, 2)
+    assert c.shape == (2, 1, 4 + 6 + 1, 5, 7)
+    assert (c.diff(dim=2) >= -1e-7).all()
+
+
+# ------------------------------------------------------------------------- values (6.1.2-5)
+def test_identity_and_symmetry():
+    x, y = _rand(2, 3, 24, 20), _rand(2, 3, 24, 20, seed=1)
+    xg = x.clone().requires_grad_()
+    loss = loi_loss(xg, x)
+    loss.backward()
+    assert loss.item() == 0.0 and torch.count_nonzero(xg.grad) == 0
+    assert torch.allclose(loi_loss(x, y), loi_loss(y, x), rtol=1e-6)
+
+
+@pytest.mark.parametrize(("a", "b"), [(0.2, 0.5), (0.0, 0.05), (0.9, 0.1), (1.0, 0.0)])
+def test_constant_images_give_n_terms_times_difference(a, b):
+    loss = LOILoss(border="renormalize")
+    x, y = torch.full((1, 3, 12, 17), a), torch.full((1, 3, 12, 17), b)
+    assert loss.n_terms == 8
+    assert loss(x, y).item() == pytest.approx(8 * abs(a - b), rel=1e-4, abs=1e-6)
+
+
+@pytest.mark.parametrize("offset", [0.1, 0.45, 0.8])
+@pytest.mark.parametrize("d", [0.01, 0.05, 0.15])
+def test_shift_invariance_of_constant_images(offset, d):
+    x, y = torch.full((1, 1, 8, 8), offset, dtype=D64), torch.full((1, 1, 8, 8), offset + d, dtype=D64)
+    assert loi_loss(x, y, alphas=(3,), sigmas=(1,), border="renormalize").item() == pytest.approx(d, abs=1e-6)
+
+
+@pytest.mark.parametrize("sigma", [0, 1, 5])
+def test_alpha_zero_is_multiscale_l1(sigma):
+    x, y = _rand(2, 3, 20, 17, lo=0.1, hi=0.9, dtype=D64), _rand(2, 3, 20, 17, seed=1, lo=0.1, hi=0.9, dtype=D64)
+    oracle = (blur(x, sigma) - blur(y, sigma)).abs().mean()
+    got = loi_loss(x, y, alphas=(0,), sigmas=(sigma,), border="renormalize")
+    assert got.item() == pytest.approx(oracle.item(), rel=1e-4)
+    assert multiscale_l1_loss(x, y, sigmas=(sigma,)).item() == pytest.approx(oracle.item(), rel=1e-12)
+
+
+def test_paper_literal_tail_zero():
+    x, y = _rand(1, 2, 12, 12, lo=0.2, hi=0.8), _rand(1, 2, 12, 12, seed=1, lo=0.2, hi=0.8)
+    tailed, literal = loi_loss(x, y, tail=3, border="renormalize"), loi_loss(x, y, tail=0, border="renormalize")
+    assert literal.item() == pytest.approx(tailed.item(), rel=0.01)
+    edge = loi_loss(torch.zeros(1, 1, 4, 4), torch.full((1, 1, 4, 4), 0.05), alphas=(0,), sigmas=(0,), tail=0)
+    assert edge.item() < 0.045  # under-counts near the ends of the range (spec 6.1.13)
+
+
+# --------------------------------------------------------------- gradients (6.1.6-8)
+def test_displaced_disk_l2_flat_loi_points_to_target():
+    target = _disk(torch.tensor(20.0, dtype=D64))
+    cx = torch.tensor(36.0, dtype=D64, requires_grad=True)  # 16 px away: no overlap
+    (g_l2,) = torch.autograd.grad((_disk(cx) - target).square().mean(), cx)
+    (g_loi,) = torch.autograd.grad(loi_loss(_disk(cx), target), cx)
+    assert abs(g_l2.item()) < 1e-6
+    assert g_loi.item() > 1e-4  # positive: decreasing cx (towards 20) lowers the loss
+
+
+def test_displaced_disk_sweep_sign_monotone_and_finite_differences():
+    n, tx = 96, 20.0
+    target = _disk(torch.tensor(tx, dtype=D64), n=n)
+    loss_fn = LOILoss()
+    values = []
+    for start in range(22, 77, 6):
+        cx = torch.tensor(float(start), dtype=D64, requires_grad=True)
+        loss = loss_fn(_disk(cx, n=n), target)
+        (g,) = torch.autograd.grad(loss, cx)
+        assert g.item() > 0, f"wrong sign at x={start}"
+        values.append(loss.item())
+        h = 1e-3
+        with torch.no_grad():
+            fd = (loss_fn(_disk(cx + h, n=n), target) - loss_fn(_disk(cx - h, n=n), target)) / (2 * h)
+        assert g.item() == pytest.approx(fd.item(), rel=1e-3)
+    assert all(a < b for a, b in zip(values, values[1:])), "loss must grow with the distance"
+    assert loss_fn.cache_hits >= len(values)  # the fixed target was processed once
+
+
+@pytest.mark.parametrize("low_memory", [False, True])
+@pytest.mark.parametrize("border", ["renormalize", "pad"])
+def test_gradcheck_float64(low_memory, border):
+    x = _rand(1, 2, 8, 8, lo=0.05, hi=0.95, dtype=D64).requires_grad_()
+    y = _rand(1, 2, 8, 8, seed=1, lo=0.05, hi=0.95, dtype=D64)
+    mask = _rand(1, 1, 8, 8, seed=2, dtype=D64) + 0.1
+    f = lambda t: loi_loss(t, y, alphas=(0, 1, 3), sigmas=(0, 1), beta=0.25, border=border, low_memory=low_memory, mask=mask, reduction="none")  # noqa: E731
+    assert torch.autograd.gradcheck(f, (x,))
+
+
+def test_low_memory_matches_autograd_and_estimates_less_memory():
+    x = _rand(2, 3, 16, 12, seed=3).requires_grad_()
+    y = _rand(2, 3, 16, 12, seed=4)
+    ref, lm = LOILoss(), LOILoss(low_memory=True)
+    (g_ref,) = torch.autograd.grad(ref(x, y), x)
+    v = lm(x, y)
+    (g_lm,) = torch.autograd.grad(v, x)
+    assert v.item() == pytest.approx(ref(x, y).item(), rel=1e-6)
+    assert torch.allclose(g_ref, g_lm, rtol=1e-4, atol=1e-9)
+    assert lm.memory_estimate((2, 3, 256, 256)) < ref.memory_estimate((2, 3, 256, 256))
+    # estimate: 4 bytes * (3 + 4) * 2 sigmas * B C K Hp Wp (+ cached target) for the default
+    assert ref.memory_estimate((1, 3, 64, 64)) == 4 * (7 * 2 + 2) * 3 * 15 * 96 * 96
+
+
+# ----------------------------------------------------------------- batch, reduction, caching
+def test_batch_and_reduction():
+    x, y = _rand(2, 3, 10, 14), _rand(2, 3, 10, 14, seed=1)
+    singles = torch.stack([loi_loss(x[i], y[i]) for i in range(2)])
+    per = loi_loss(x, y, reduction="none")
+    assert per.shape == (2,)
+    assert torch.allclose(per, singles, rtol=1e-5)
+    assert loi_loss(x, y).item() == pytest.approx(singles.mean().item(), rel=1e-5)
+    assert loi_loss(x, y, reduction="sum").item() == pytest.approx(singles.sum().item(), rel=1e-5)
+
+
+def test_module_equals_function_and_terms_sum_to_total():
+    x, y = _rand(1, 3, 16, 16), _rand(1, 3, 16, 16, seed=1)
+    m = LOILoss.preset("disks", border="renormalize")
+    assert m.alphas == (1.0, 5.0, 15.0) and m.sigmas == (1.0, 5.0, 15.0, 45.0)
+    total = m(x, y)
+    assert total.item() == pytest.approx(loi_loss(x, y, alphas=(1, 5, 15), sigmas=(1, 5, 15, 45), border="renormalize").item(), rel=1e-6)
+    terms = m.terms(x, y)
+    assert set(terms) == {(s, a) for s in (1.0, 5.0, 15.0, 45.0) for a in (1.0, 5.0, 15.0)}
+    assert sum(terms.values()).item() == pytest.approx(total.item(), rel=1e-5)
+    assert "alphas=(1.0, 5.0, 15.0)" in repr(m)
+    assert LOILoss.preset("raster").beta == 0.03125 and LOILoss.preset("pathtracing").alphas == (1, 5, 15, 45)
+    with pytest.raises(ValueError, match="unknown LOI preset"):
+        LOILoss.preset("nope")
+
+
+def test_target_cache_hits_and_invalidation():
+    x = _rand(1, 3, 12, 12).requires_grad_()
+    y = _rand(1, 3, 12, 12, seed=1)
+    cached, plain = LOILoss(), LOILoss(cache_target=False)
+    v1 = cached(x, y)
+    (g1,) = torch.autograd.grad(v1, x)
+    v2 = cached(x, y)
+    (g2,) = torch.autograd.grad(v2, x)
+    assert cached.cache_hits == 1
+    (g_plain,) = torch.autograd.grad(plain(x, y), x)
+    assert v1.item() == v2.item() and torch.equal(g1, g2) and torch.allclose(g1, g_plain)
+    cached(x, y.clone())  # equal content: still a hit
+    assert cached.cache_hits == 2
+    y.add_(0.1)  # in-place change: must recompute
+    assert cached(x, y).item() == pytest.approx(plain(x, y).item(), rel=1e-6)
+    assert cached.cache_hits == 2
+    cached.set_scales(alphas=(0, 2))
+    assert cached.n_terms == 4 and len(cached._cache) == 0
+
+
+def test_relative_scales_follow_the_resolution():
+    x, y = _rand(1, 1, 32, 40), _rand(1, 1, 32, 40, seed=1)
+    rel = loi_loss(x, y, alphas=(0.25,), sigmas=(1 / 32,), relative=True)
+    px = loi_loss(x, y, alphas=(8,), sigmas=(1,))
+    assert rel.item() == pytest.approx(px.item(), rel=1e-6)
+
+
+def test_float32_float64_agree_and_half_is_upcast():
+    x, y = _rand(1, 3, 16, 16, dtype=D64), _rand(1, 3, 16, 16, seed=1, dtype=D64)
+    v64 = loi_loss(x, y)
+    assert v64.dtype == D64
+    assert loi_loss(x.float(), y.float()).item() == pytest.approx(v64.item(), rel=1e-4)
+    assert loi_loss(x.half(), y.half()).dtype == torch.float32
+
+
+def test_mask_weights_pixels():
+    x, y = _rand(1, 1, 8, 8), _rand(1, 1, 8, 8, seed=1)
+    mask = torch.zeros(1, 1, 8, 8)
+    mask[..., :, :4] = 1
+    y2 = y.clone()
+    y2[..., :, 4:] = 0.0  # changes only masked-out pixels
+    kw = dict(alphas=(0,), sigmas=(0,), border="renormalize")
+    assert loi_loss(x, y, mask=mask, **kw).item() == pytest.approx(loi_loss(x, y2, mask=mask, **kw).item(), rel=1e-6)
+    assert loi_loss(x, y, mask=torch.ones(1, 1, 8, 8)).item() == pytest.approx(loi_loss(x, y).item(), rel=1e-6)
+    with pytest.raises(ValueError, match="zero everywhere"):
+        loi_loss(x, y, mask=torch.zeros(1, 1, 8, 8))
+    with pytest.raises(ValueError, match="mask must be"):
+        loi_loss(x, y, mask=torch.ones(1, 1, 4, 4))
+
+
+# ------------------------------------------------------------------------ extremes (6.1.9)
+def test_extremes_are_finite():
+    for x, y in [
+        (torch.zeros(1, 3, 1, 1), torch.ones(1, 3, 1, 1)),  # 1x1
+        (torch.zeros(1, 1, 3, 50), torch.full((1, 1, 3, 50), 0.5)),  # non-square, thin
+        (torch.full((1, 3, 8, 8), 1e6), torch.zeros(1, 3, 8, 8)),  # fireflies
+    ]:
+        xg = x.clone().requires_grad_()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            loss = loi_loss(xg, y, alphas=(0, 1, 100), sigmas=(0, 100))
+        loss.backward()
+        assert torch.isfinite(loss) and torch.isfinite(xg.grad).all()
+
+
+def test_out_of_range_saturates_and_warns_once():
+    kw = dict(border="renormalize", alphas=(0,), sigmas=(0,))
+    in_range = loi_loss(torch.full((1, 1, 4, 4), 0.5), torch.full((1, 1, 4, 4), 1.0), **kw).item()
+    m = LOILoss(**kw)
+    with pytest.warns(UserWarning, match="beyond value_range"):
+        far = m(torch.full((1, 1, 4, 4), 1.5), torch.full((1, 1, 4, 4), 2.0)).item()
+    assert far < 0.1 * in_range
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        m(torch.full((1, 1, 4, 4), 1.5), torch.full((1, 1, 4, 4), 2.0))  # once per module
+        tm = loi_loss(torch.full((1, 1, 4, 4), 1.5), torch.full((1, 1, 4, 4), 2.0), transform="reinhard", **kw).item()
+    assert tm == pytest.approx(2.0 / 3.0 - 1.5 / 2.5, rel=1e-3)  # Reinhard keeps HDR differences
+
+
+@pytest.mark.parametrize("transform", ["identity", "clamp", "reinhard", "log1p", torch.sqrt])
+def test_transforms(transform):
+    x, y = _rand(1, 3, 8, 8, hi=3.0).requires_grad_(), _rand(1, 3, 8, 8, seed=1, hi=3.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        loss = loi_loss(x, y, transform=transform)
+    loss.backward()
+    assert loss.item() > 0 and torch.isfinite(x.grad).all()
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+@pytest.mark.parametrize("which", ["rendered", "target"])
+def test_non_finite_input_names_the_tensor(bad, which):
+    x, y = torch.rand(1, 3, 8, 8), torch.rand(1, 3, 8, 8)
+    (x if which == "rendered" else y)[0, 0, 1, 1] = bad
+    with pytest.raises(ValueError, match=f"{which} has 1 non-finite"):
+        loi_loss(x, y)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        (dict(beta=0.0), ValueError, "beta must be > 0"),
+        (dict(beta=-1.0), ValueError, "beta must be > 0"),
+        (dict(alphas=(1, -2)), ValueError, "alphas must be finite and >= 0"),
+        (dict(sigmas=()), ValueError, "sigmas must not be empty"),
+        (dict(reduction="avg"), ValueError, "reduction must be one of"),
+        (dict(border="reflect"), ValueError, "border must be one of"),
+        (dict(transform="gamma"), ValueError, "transform must be one of"),
+        (dict(value_range=(1, 0)), ValueError, "value_range"),
+        (dict(tail=-1), ValueError, "tail must be"),
+        (dict(weights=[[1, 2]]), ValueError, "weights must have shape"),
+        (dict(channels="rgb"), ValueError, "channels must be one of"),
+    ],
+)
+def test_bad_options(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        LOILoss(**kwargs)
+
+
+def test_bad_images():
+    x = torch.rand(1, 3, 8, 8)
+    with pytest.raises(ValueError, match="shapes differ"):
+        loi_loss(x, torch.rand(1, 3, 8, 9))
+    with pytest.raises(ValueError, match=r"Mitsuba's \(H, W, C\) layout"):
+        loi_loss(torch.rand(16, 16, 3), torch.rand(16, 16, 3))
+    with pytest.raises(ValueError, match=r"Mitsuba's \(H, W, C\) layout"):
+        loi_loss(torch.rand(2, 16, 16, 4), torch.rand(2, 16, 16, 4))
+    with pytest.raises(ValueError, match=r"\(C, H, W\) or \(B, C, H, W\)"):
+        loi_loss(torch.rand(8, 8), torch.rand(8, 8))
+    with pytest.raises(TypeError, match="floating-point"):
+        loi_loss(torch.ones(1, 3, 8, 8, dtype=torch.uint8), torch.ones(1, 3, 8, 8, dtype=torch.uint8))
+    with pytest.raises(TypeError, match="torch.Tensor"):
+        loi_loss(x.numpy(), x)
+    with pytest.warns(UserWarning, match="beta=0.001"):
+        LOILoss(beta=0.001)
+
+
+def test_luminance_channels():
+    x, y = _rand(1, 3, 8, 8), _rand(1, 3, 8, 8, seed=1)
+    assert torch.isfinite(loi_loss(x, y, channels="luminance"))
+    with pytest.raises(ValueError, match="needs 3 channels"):
+        loi_loss(x[:, :2], y[:, :2], channels="luminance")
+
+
+# ------------------------------------------------------------------------------ baselines
+def test_baselines_registry_and_values():
+    assert LOSSES["loi"] is LOILoss and LOSSES["gp"] is GaussianPyramidLoss
+    assert LOSSES["multiscale_l1"] is MultiScaleL1Loss and LOSSES["multiscale_l2"] is MultiScaleL2Loss
+    for cls in (LOILoss, GaussianPyramidLoss, MultiScaleL1Loss, MultiScaleL2Loss):
+        assert cls.pixelwise is False
+    x, y = _rand(2, 3, 16, 12, dtype=D64), _rand(2, 3, 16, 12, seed=1, dtype=D64)
+    assert multiscale_l2_loss(x, y, sigmas=(0, 2)).item() == pytest.approx(
+        ((x - y).square().mean() + (blur(x, 2) - blur(y, 2)).square().mean()).item(), rel=1e-12
+    )
+    # pyramid: level 1 is the sigma=1 blur subsampled by 2
+    l1 = (blur(x, 1.0)[..., ::2, ::2] - blur(y, 1.0)[..., ::2, ::2]).square().mean()
+    assert gaussian_pyramid_loss(x, y, levels=2).item() == pytest.approx(((x - y).square().mean() + l1).item(), rel=1e-12)
+    assert GaussianPyramidLoss(reduction="none")(x, y).shape == (2,)
+    assert GaussianPyramidLoss()(torch.zeros(1, 3, 1, 1), torch.ones(1, 3, 1, 1)).item() == pytest.approx(1.0)
+    xg = x.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: gaussian_pyramid_loss(t, y, levels=3) + multiscale_l1_loss(t, y, sigmas=(1,)), (xg,))
+    with pytest.raises(ValueError, match="p must be 1 or 2"):
+        GaussianPyramidLoss(p=3)
+    with pytest.raises(ValueError, match="non-finite"):
+        MultiScaleL2Loss()(x, torch.full_like(x, float("nan")))
+
+
+# ---------------------------------------------------------------------- Mitsuba smoke (6.1.14)
+def test_mitsuba_smoke_loi_backward_through_render(cbox, red):
+    from torchir.functions import render
+
+    with torch.no_grad():
+        target = render(cbox, {"red.reflectance.value": torch.tensor([0.1, 0.7, 0.2])}, spp=4, seed=10)
+    img = render(cbox, {"red.reflectance.value": red}, spp=4, seed=1)
+    loss = LOILoss(transform="reinhard")(img, target)
+    loss.backward()
+    assert torch.isfinite(red.grad).all() and red.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match=r"\(H, W, C\)"):
+        LOILoss()(img.permute(1, 2, 0), target.permute(1, 2, 0))

@@ -1,0 +1,191 @@
+"""Pixel sampling with the renderer (spec adaptive-sampling §6.2): Stage-1 probes, the
+unbiased sampled gradient against full-image gradients, and the trainer's pixel mode."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+import torchir
+from torchir.functions import render, render_pixels
+from torchir.functions.probe import probe_pixels
+from torchir.modules import L2Loss
+from torchir.samplers import AdaptivePixelSampler, LossPixelSampler, UniformPixelSampler
+
+from .conftest import RES
+
+KEY = "red.reflectance.value"
+
+
+def test_probe_low_res_matches_box_downsampled_render(cbox):
+    radiance, derivative = probe_pixels(cbox, {}, [(RES // 2, RES // 2)], passes=64, seed=3)
+    assert derivative is None and radiance[0].shape == (64, 3, RES // 2, RES // 2)
+    full = render(cbox, {}, spp=64, seed=4)
+    reference = F.avg_pool2d(full[None], 2)[0]
+    mean, se = radiance[0].mean(0), radiance[0].std(0) / 8 + 1e-4
+    z = (mean - reference) / torch.sqrt(se**2 + (reference * 0 + full.std() / 64) ** 2)
+    assert float((z.abs() > 4).float().mean()) < 0.02
+
+
+def test_probe_derivative_matches_finite_differences(cbox, red):
+    v = torch.tensor([1.0, -1.0, 1.0])
+    _, derivative = probe_pixels(cbox, {KEY: red.detach()}, [(RES, RES)], passes=32, seed=5, tangents={KEY: v})
+    eps = 0.05
+    plus = render(cbox, {KEY: red.detach() + eps * v}, spp=128, seed=9)
+    minus = render(cbox, {KEY: red.detach() - eps * v}, spp=128, seed=9)
+    fd = float((plus - minus).sum()) / (2 * eps)
+    probe = float(derivative[0].mean(0).sum())
+    assert probe == pytest.approx(fd, rel=0.1)
+
+
+def test_probe_bad_input(cbox, red):
+    with pytest.raises(KeyError, match="tangents"):
+        probe_pixels(cbox, {}, [(4, 4)], tangents={KEY: torch.ones(3)})
+    with pytest.raises(ValueError, match="shape"):
+        probe_pixels(cbox, {KEY: red.detach()}, [(4, 4)], tangents={KEY: torch.ones(4)})
+    with pytest.raises(ValueError, match="grid"):
+        probe_pixels(cbox, {}, [(0, 4)])
+
+
+def _target(scene, truth):
+    return render(scene, truth, spp=256, seed=12345)
+
+
+def test_stage1_adaptive_pmf_follows_the_parameter(cbox, red):
+    """Only the red wall depends on its albedo: p2 (and so the adaptive pmf) concentrates there,
+    while the Eq. 5 pmf does not know which pixels the parameter moves."""
+    target = _target(cbox, {KEY: torch.tensor([0.9, 0.1, 0.1])})
+    params = {KEY: red.detach()}
+    adaptive = AdaptivePixelSampler(cbox, budget=64, alpha=0.1, seed=0)
+    eq5 = LossPixelSampler(cbox, budget=64, alpha=0.1, seed=0)
+    for s in (adaptive, eq5):
+        assert s.due(0, params)
+        s.update(params, target[None], L2Loss(), step=0)
+        assert not s.due(1, params)
+        assert abs(float(s.pdf.sum()) - 1) < 1e-12 and float(s.pdf.min()) >= 0.1 / RES**2 * (1 - 1e-9)
+    # Pixels whose radiance moves with the red albedo (from a finite difference of full renders).
+    moved = (render(cbox, {KEY: red.detach() + 0.2}, spp=64, seed=1) - render(cbox, {KEY: red.detach()}, spp=64, seed=1)).abs().sum(0)
+    mask = (moved > moved.mean()).flatten()
+    assert float(adaptive.pdf[mask].sum()) > float(eq5.pdf[mask].sum()) + 0.05
+    d = adaptive.diagnostics()
+    assert d["predicted_gain"] >= 1.0 and d["stage1_paths"] > 0 and d["stage1_seconds"] > 0
+
+
+def _sampled_gradient(scene, params, sampler, target, step, sensor_targets):
+    """The trainer's estimator (paper 000, E16): one pixel batch, render_pixels, weighted loss."""
+    h, w = scene.resolution
+    batch = sampler.sample()
+    view_of, local = batch.index // (h * w), batch.index % (h * w)
+    loss = 0.0
+    for view in range(scene.sensor_count):
+        chosen = (view_of == view).nonzero().squeeze(1)
+        if chosen.numel() == 0:
+            continue
+        radiance = render_pixels(scene, params, local[chosen], spp=1, seed=1000 * step + view, sensor=view)
+        wanted = sensor_targets[view].flatten(1).t()[local[chosen]]
+        loss = loss + (batch.weight[chosen] * L2Loss().pixel_terms(radiance, wanted, scene.sensor_count * h * w)).sum()
+    (grad,) = torch.autograd.grad(loss, list(params.values()))
+    return grad.flatten()
+
+
+def _full_gradient(scene, params, targets, seed):
+    images = torch.stack([render(scene, params, spp=4, seed=seed * 97 + v, sensor=v) for v in range(scene.sensor_count)])
+    (grad,) = torch.autograd.grad(L2Loss()(images, targets), list(params.values()))
+    return grad.flatten()
+
+
+def _z_scores(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    se = torch.sqrt(a.var(0) / a.shape[0] + b.var(0) / b.shape[0]) + 1e-12
+    return (a.mean(0) - b.mean(0)) / se
+
+
+@pytest.mark.parametrize("cls", [UniformPixelSampler, LossPixelSampler, AdaptivePixelSampler])
+def test_sampled_gradient_is_unbiased(cbox, cls):
+    value = torch.tensor([0.3, 0.3, 0.3], requires_grad=True)
+    params = {KEY: value}
+    target = _target(cbox, {})
+    sampler = cls(cbox, budget=48, seed=1)
+    sampler.update({KEY: value.detach()}, target[None], L2Loss(), step=0)
+    sampled = torch.stack([_sampled_gradient(cbox, params, sampler, target, i, [target]) for i in range(100)])
+    full = torch.stack([_full_gradient(cbox, params, target[None], seed) for seed in range(30)])
+    z = _z_scores(sampled, full)
+    assert bool((z.abs() < 4.5).all()), z
+    # the test has power: the gradient itself is many standard errors away from zero
+    assert float((full.mean(0).abs() / (full.std(0) / math.sqrt(full.shape[0]))).max()) > 5
+
+
+def test_sampled_gradient_multiview_global_pmf():
+    scene = torchir.Scene.builtin("multiview", resolution=RES, views=2, texture=4)
+    key = "object.bsdf.reflectance.data"
+    value = torch.full(scene.get(key).shape, 0.5, requires_grad=True)
+    targets = torch.stack([render(scene, {}, spp=128, seed=77 + v, sensor=v) for v in range(2)])
+    sampler = AdaptivePixelSampler(scene, budget=64, seed=2)
+    sampler.update({key: value.detach()}, targets, L2Loss(), step=0)
+    assert sampler.pdf.numel() == 2 * RES * RES
+    sampled = torch.stack([_sampled_gradient(scene, {key: value}, sampler, targets, i, targets) for i in range(100)])
+    full = torch.stack([_full_gradient(scene, {key: value}, targets, seed) for seed in range(30)])
+    z = _z_scores(sampled, full)
+    assert float((z.abs() > 3).float().mean()) <= 0.02 and float(z.abs().max()) < 5.0, z
+
+
+# ------------------------------------------------------------------------------ trainer
+def _fit(tmp_path, steps, **model):
+    import lightning.pytorch as pl
+
+    from torchir.training import InverseRenderingModule, ViewDataModule
+
+    module = InverseRenderingModule(**{"scene": "cbox", "resolution": RES, "spp": 1, "lr": 0.05, **model})
+    trainer = pl.Trainer(
+        max_steps=steps, logger=pl.loggers.CSVLogger(tmp_path), enable_checkpointing=False,
+        enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path,
+    )
+    trainer.fit(module, datamodule=ViewDataModule(target_spp=64))
+    return module, trainer
+
+
+def test_trainer_pixel_mode_reduces_parameter_error(tmp_path):
+    model = {
+        "parameters": {KEY: {"init": 0.3, "bounds": [0.0, 1.0]}},
+        "sampler": {"type": "adaptive", "budget": 0.25, "refresh_every": 10, "seed": 0},
+    }
+    module, trainer = _fit(tmp_path, 40, **model)
+    truth = module.ground_truth()
+    assert module.parameter_error(truth) < 0.5 * float((torch.full((3,), 0.3) - truth[KEY]).square().mean().sqrt())
+    metrics = trainer.callback_metrics
+    assert "sampler/ess_fraction" in metrics and 0 < float(metrics["sampler/ess_fraction"]) <= 1
+    assert module.sampler.refreshes == 4  # steps 0, 10, 20, 30
+
+
+def test_trainer_rejects_pixel_coupling_losses_and_denoisers():
+    from torch import nn
+
+    from torchir.training import InverseRenderingModule
+
+    class Coupled(nn.Module):
+        def forward(self, rendered, target):
+            return (rendered.mean() - target.mean()) ** 2
+
+    with pytest.raises(ValueError, match="couples pixels"):
+        InverseRenderingModule(scene="cbox", resolution=RES, loss=Coupled(), sampler={"type": "uniform", "budget": 8})
+    with pytest.raises(ValueError, match="denoiser"):
+        InverseRenderingModule(scene="cbox", resolution=RES, denoiser=nn.Identity(), sampler={"type": "uniform", "budget": 8})
+    with pytest.raises(ValueError, match="sampler.type"):
+        InverseRenderingModule(scene="cbox", resolution=RES, sampler={"type": "importance"})
+    with pytest.raises(ValueError, match="budget"):
+        InverseRenderingModule(scene="cbox", resolution=RES, sampler={"type": "adaptive", "budget": 0})
+
+
+def test_sampler_state_is_checkpointed(cbox):
+    from torchir.training import InverseRenderingModule
+
+    module = InverseRenderingModule(scene="cbox", resolution=RES, sampler={"type": "loss", "budget": 8, "seed": 3})
+    module.sampler.update_from_maps(torch.rand(1, 4, 4))
+    checkpoint: dict = {}
+    module.on_save_checkpoint(checkpoint)
+    other = InverseRenderingModule(scene="cbox", resolution=RES, sampler={"type": "loss", "budget": 8, "seed": 9})
+    other.on_load_checkpoint(checkpoint)
+    assert torch.equal(other.sampler.pdf, module.sampler.pdf)
+    assert torch.equal(other.sampler.sample().index, module.sampler.sample().index)
+    assert math.isclose(float(other.sampler.pdf.sum()), 1.0, rel_tol=1e-12)

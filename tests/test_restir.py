@@ -1,0 +1,614 @@
+"""ReSTIR for inverse direct illumination (paper 004): spec §7 T-U1 ... T-U9.
+
+Scenes are 24x24 to 32x32 with few lights and candidates, so the kernels compile once per
+configuration. Statistical bounds come from the estimators' own spread (independent seeds
+or independent chains), never from hard-coded values.
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+import torch
+
+import torchir
+from torchir.functions import render
+from torchir.samplers import SAMPLERS, ReSTIRSampler
+from torchir.samplers._knn import knn_grid, knn_kdtree
+
+RES = 24
+KEY = "canvas.bsdf.reflectance.data"
+SPOT = "spot_left.intensity.value"
+
+
+@pytest.fixture(scope="module")
+def oxalis() -> torchir.Scene:
+    return torchir.Scene.builtin("oxalis_lite", resolution=RES, texture=6, dim_lights=3, hidden_lights=3)
+
+
+@pytest.fixture(scope="module")
+def reference(oxalis) -> np.ndarray:
+    """Converged image (prb, direct light only) and its per-pixel standard error."""
+    imgs = np.stack([render(oxalis, {}, spp=512, seed=10_000 + i).numpy() for i in range(4)])
+    return imgs.mean(0), imgs.std(0, ddof=1) / 2.0
+
+
+def _mean_ratio_and_se(samples: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
+    """Ratio of the sample mean of image means to the reference mean, and its standard error
+    (from the spread of the independent samples)."""
+    means = samples.reshape(len(samples), -1).mean(1) / ref.mean()
+    return float(means.mean()), float(means.std(ddof=1) / math.sqrt(len(means)))
+
+
+def _chains(scene, n_chains, steps, drop, params=None, **options):
+    """Per-chain mean images of independent ReSTIR chains (independent sampler seeds)."""
+    out = []
+    for c in range(n_chains):
+        r = ReSTIRSampler(scene, seed=c + 1, **options)
+        imgs = [render(scene, params or {}, spp=2, seed=s, sampler=r).numpy() for s in range(steps)]
+        out.append(np.mean(imgs[drop:], 0))
+    return np.stack(out)
+
+
+# ---------------------------------------------------------------------------------- T-U1
+def test_ris_m1_equals_light_sampling_lane_for_lane(oxalis):
+    """B.1 (one candidate, no reuse) is exactly next-event estimation with Mitsuba's
+    ``sample_emitter_direction`` and the same random numbers."""
+    from torchir.integrators.restir_di import _develop, _sample_rays
+
+    r = ReSTIRSampler(oxalis, preset="b1")
+    img = render(oxalis, {}, spp=1, seed=3, sampler=r).permute(1, 2, 0).numpy()
+
+    scene = oxalis.mi_scene
+    sensor = scene.sensors()[0]
+    n = RES * RES
+    sampler = sensor.sampler().fork()
+    sampler.set_sample_count(1)
+    sampler.set_samples_per_wavefront(1)
+    sampler.seed(3, n)
+    ray, weight = _sample_rays(sensor, sampler, 1, RES, RES)
+    si = scene.ray_intersect(mi.Ray3f(ray))
+    ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, si.is_valid())
+    fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), si.is_valid())
+    nee = weight * (si.emitter(scene).eval(si) + em_weight * fs)
+    hand = _develop(nee, 1, RES, RES).numpy()
+    assert np.abs(img - hand).max() <= 1e-5 * max(1.0, np.abs(hand).max())
+
+
+def test_ris_m1_mean_matches_mitsuba_direct(oxalis):
+    r = ReSTIRSampler(oxalis, preset="b1")
+    samples = np.stack([render(oxalis, {}, spp=64, seed=s, sampler=r).numpy() for s in range(8)])
+    direct = mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
+    refs = np.stack([np.array(mi.render(oxalis.mi_scene, integrator=direct, spp=256, seed=500 + s)) for s in range(4)])
+    ratio, se = _mean_ratio_and_se(samples, refs.mean(0).transpose(2, 0, 1))
+    ref_means = refs.reshape(4, -1).mean(1)
+    se_ref = ref_means.std(ddof=1) / 2.0 / ref_means.mean()
+    assert abs(ratio - 1) < 4 * math.hypot(se, se_ref)
+
+
+# ---------------------------------------------------------------------------------- T-U2
+def test_ris_images_unbiased(oxalis, reference):
+    ref, ref_se = reference
+    r = ReSTIRSampler(oxalis, preset="b2", candidates=4)
+    samples = np.stack([render(oxalis, {}, spp=4, seed=s, sampler=r).numpy() for s in range(16)])
+    ratio, se = _mean_ratio_and_se(samples, ref)
+    assert abs(ratio - 1) < 3 * se + 3 * float(ref_se.mean() / ref.mean())
+    se_px = np.sqrt(samples.var(0, ddof=1) / len(samples) + ref_se**2)
+    lit = se_px > 0
+    z = np.abs(samples.mean(0) - ref)[lit] / se_px[lit]
+    assert (z > 4).mean() < 0.01
+
+
+@pytest.mark.parametrize("nn_backend", ["kdtree", "grid"])
+def test_reuse_chains_unbiased(oxalis, reference, nn_backend):
+    """Chain means of spatiotemporal reuse (12 independent chains, burn-in dropped) match
+    the reference within 3 standard errors of the chain means."""
+    ref, ref_se = reference
+    chains = _chains(oxalis, 12, 10, 2, candidates=4, burn_in=4, nn_backend=nn_backend)
+    assert np.isfinite(chains).all()
+    ratio, se = _mean_ratio_and_se(chains, ref)
+    assert se < 0.05  # the test has power: a 15 % bias would be caught
+    assert abs(ratio - 1) < 3 * math.hypot(se, float(ref_se.mean() / ref.mean()))
+
+
+# ---------------------------------------------------------------------------------- T-U3
+def _linear_loss_grads(scene, make_sampler, n, spp, seed0=0, chains=False):
+    torch.manual_seed(0)
+    weights = torch.rand(3, RES, RES)
+    tex = scene.get(KEY)
+    out = []
+    r = make_sampler(0)
+    for i in range(n):
+        if chains:
+            r = make_sampler(i + 1)
+        t = tex.clone().requires_grad_()
+        img = render(scene, {KEY: t}, spp=spp, seed=seed0 + i, sampler=r)
+        (img * weights).sum().backward()
+        out.append(t.grad.clone())
+    return torch.stack(out)
+
+
+@pytest.fixture(scope="module")
+def prb_gradient(oxalis):
+    """Reference gradient of the linear loss: prb (max_depth 2) at 16 x 256 spp."""
+    g = _linear_loss_grads(oxalis, lambda c: None, 16, 256, seed0=777)
+    return g.mean(0), g.std(0) / 4.0
+
+
+def test_ris_gradient_unbiased(oxalis, prb_gradient):
+    ref, ref_se = prb_gradient
+    g = _linear_loss_grads(oxalis, lambda c: ReSTIRSampler(oxalis, preset="b2", candidates=4), 16, 4)
+    m, se = g.mean(0), g.std(0) / 4.0
+    z = (m - ref).abs() / torch.sqrt(se**2 + ref_se**2).clamp_min(1e-12)
+    assert (z > 4).float().mean() < 0.02
+    sum_se = float(g.sum((1, 2, 3)).std() / 4.0)
+    assert abs(float(m.sum() - ref.sum())) < 4 * math.hypot(sum_se, float(ref_se.norm()))
+
+
+def test_reuse_gradient_unbiased(oxalis, prb_gradient):
+    """12 independent chains (burn-in 4, then 4 steps each); z over chain means."""
+    ref, ref_se = prb_gradient
+    torch.manual_seed(0)
+    weights = torch.rand(3, RES, RES)
+    tex = oxalis.get(KEY)
+    chain_means = []
+    for c in range(12):
+        r = ReSTIRSampler(oxalis, candidates=4, burn_in=4, seed=c + 1)
+        gs = []
+        for i in range(4):
+            t = tex.clone().requires_grad_()
+            (render(oxalis, {KEY: t}, spp=2, seed=i, sampler=r) * weights).sum().backward()
+            gs.append(t.grad)
+        chain_means.append(torch.stack(gs).mean(0))
+    g = torch.stack(chain_means)
+    m, se = g.mean(0), g.std(0) / math.sqrt(len(g))
+    z = (m - ref).abs() / torch.sqrt(se**2 + ref_se**2).clamp_min(1e-12)
+    assert (z < 3).float().mean() >= 0.95
+    sums = g.sum((1, 2, 3))
+    assert abs(float(sums.mean() - ref.sum())) < 3 * math.hypot(float(sums.std() / math.sqrt(len(g))), float(ref_se.norm()))
+
+
+def test_gradient_matches_finite_differences(oxalis):
+    """With B.1 the paths do not depend on the albedo, so central differences with common
+    random numbers differentiate the very estimator the backward pass differentiates."""
+    torch.manual_seed(1)
+    weights = torch.rand(3, RES, RES, dtype=torch.float64)
+    tex = oxalis.get(KEY)
+    r = ReSTIRSampler(oxalis, preset="b1", grad_paths="shared")
+    t = tex.clone().requires_grad_()
+    (render(oxalis, {KEY: t}, spp=4, seed=5, sampler=r).double() * weights).sum().backward()
+    h = 1e-2
+    for idx in [(1, 1, 0), (3, 2, 1), (4, 4, 2)]:
+        plus, minus = tex.clone(), tex.clone()
+        plus[idx] += h
+        minus[idx] -= h
+        lp = (render(oxalis, {KEY: plus}, spp=4, seed=5, sampler=r).double() * weights).sum()
+        lm = (render(oxalis, {KEY: minus}, spp=4, seed=5, sampler=r).double() * weights).sum()
+        fd = float(lp - lm) / (2 * h)
+        assert fd != 0
+        assert abs(float(t.grad[idx]) - fd) <= 1e-3 * abs(fd) + 1e-4
+
+
+# ---------------------------------------------------------------------------------- T-U4
+def _hard_scene(res: int) -> torchir.Scene:
+    """Misses (no wall), a black texture block, lights facing away, a fully occluded region."""
+    from torchir.scenes import oxalis_lite
+
+    d = oxalis_lite.build(resolution=res, texture=6, dim_lights=2, hidden_lights=2)
+    del d["wall"]
+    d["sensor"]["fov"] = 70.0
+    tex = np.array(d["canvas"]["bsdf"]["reflectance"]["data"])
+    tex[:3, :3] = 0.0
+    d["canvas"]["bsdf"]["reflectance"]["data"] = mi.TensorXf(tex)
+    d["blocker"] = {  # shadows the right spot's spot completely
+        "type": "rectangle",
+        "to_world": mi.ScalarTransform4f().translate([1.0, -0.5, 1.5]).scale([0.3, 0.3, 1.0]),
+        "bsdf": {"type": "diffuse"},
+    }
+    d["away"] = {"type": "spot", "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 1], target=[0, 0, 5], up=[0, 1, 0]),
+                 "intensity": {"type": "rgb", "value": 50.0}}
+    return torchir.Scene.from_dict(d)
+
+
+def test_zero_targets_are_safe_and_w_stays_bounded():
+    scene = _hard_scene(16)
+    tex = scene.get(KEY)
+    b1 = ReSTIRSampler(scene, preset="b1")
+    render(scene, {}, spp=1, seed=0, sampler=b1)
+    w_max_m1 = b1.diagnostics()["max_W"]
+    r = ReSTIRSampler(scene, candidates=2, burn_in=2, m_cap=20)
+    max_w = 0.0
+    for step in range(200):
+        t = tex.clone().requires_grad_()
+        img = render(scene, {KEY: t}, spp=1, seed=step, sampler=r)
+        img.sum().backward()
+        d = r.diagnostics()
+        assert torch.isfinite(img).all() and torch.isfinite(t.grad).all()
+        assert all(math.isfinite(v) for v in d.values())
+        assert d["max_M"] <= 20
+        max_w = max(max_w, d["max_W"])
+    assert 0 < d["frac_W0"] < 1
+    assert float(t.grad[:3, :3].abs().sum()) > 0  # bilinear neighbours of black texels get gradient
+    assert max_w <= 1e3 * w_max_m1
+
+
+# ---------------------------------------------------------------------------------- T-U5
+def _rel_mse(img: np.ndarray, target: np.ndarray) -> float:
+    return float(((img - target) ** 2).mean() / (target**2).mean())
+
+
+def test_drastic_light_changes_recover(oxalis, reference):
+    """A light x100 and then switched off between steps: finite images, M <= cap, the error
+    is back at its pre-change level within 10 steps, and reset() gives a valid chain."""
+    ref, _ = reference
+    spot = oxalis.get(SPOT)
+    r = ReSTIRSampler(oxalis, candidates=4, burn_in=4, m_cap=40)
+    before = np.mean([_rel_mse(render(oxalis, {}, spp=2, seed=s, sampler=r).numpy(), ref) for s in range(6)][2:])
+    bright, off = {SPOT: spot * 100}, {SPOT: spot * 0}
+    for params, seed0 in ((bright, 4242), (off, 4343)):
+        target = render(oxalis, params, spp=2048, seed=seed0).numpy()
+        errs = []
+        for s in range(10):
+            img = render(oxalis, params, spp=2, seed=seed0 + 1 + s, sampler=r)
+            d = r.diagnostics()
+            assert torch.isfinite(img).all() and math.isfinite(d["max_W"]) and d["max_M"] <= 40
+            errs.append(_rel_mse(img.numpy(), target))
+        assert np.mean(errs[4:]) <= 2 * before
+    r.reset()
+    assert r.steps == {}
+    img = render(oxalis, off, spp=2, seed=999, sampler=r)
+    assert torch.isfinite(img).all() and r.steps == {0: 1}
+
+
+def test_drastic_light_changes_stay_unbiased(oxalis):
+    """Chain means over the 8 steps after each change match the new references (8 chains)."""
+    spot = oxalis.get(SPOT)
+    bright, off = {SPOT: spot * 100}, {SPOT: spot * 0}
+    means = {"bright": [], "off": []}
+    for c in range(8):
+        r = ReSTIRSampler(oxalis, candidates=4, burn_in=4, seed=c + 1)
+        for s in range(3):
+            render(oxalis, {}, spp=2, seed=s, sampler=r)
+        for name, params in (("bright", bright), ("off", off)):
+            imgs = [render(oxalis, params, spp=2, seed=10 + s, sampler=r).numpy() for s in range(8)]
+            means[name].append(np.mean(imgs, 0))
+    for name, params in (("bright", bright), ("off", off)):
+        refs = np.stack([render(oxalis, params, spp=512, seed=7000 + i).numpy() for i in range(4)])
+        chains = np.stack(means[name])
+        assert np.isfinite(chains).all()
+        ratio, se = _mean_ratio_and_se(chains, refs.mean(0))
+        ref_means = refs.reshape(4, -1).mean(1)
+        assert se < 0.08  # power: a 25 % bias (e.g. stale weights of the changed light) is caught
+        assert abs(ratio - 1) < 3 * math.hypot(se, ref_means.std(ddof=1) / 2.0 / ref_means.mean())
+
+
+# ---------------------------------------------------------------------------------- T-U6
+def test_material_point_rebuild_follows_vertices():
+    from torchir.integrators._light import Reservoirs, rebuild_interaction
+
+    scene = torchir.Scene.from_dict({
+        "type": "scene",
+        "integrator": {"type": "prb", "max_depth": 2},
+        "sensor": torchir.scenes._common.perspective([0.3, 0.4, 4.0], [0, 0, 0], [0, 1, 0], 40.0, 16, 16),
+        "cube": {"type": "cube", "bsdf": {"type": "diffuse"}},
+        "light": {"type": "point", "position": [0, 0, 3.0]},
+    })
+    mi_scene = scene.mi_scene
+    sensor = mi_scene.sensors()[0]
+    rays, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(dr.linspace(mi.Float, 0.1, 0.9, 64), 0.5), mi.Point2f(0.5))
+    pi = mi_scene.ray_intersect_preliminary(rays)
+    si = pi.compute_surface_interaction(rays)
+    r = dr.zeros(Reservoirs(), 64)
+    r.shape, r.prim, r.prim_uv, r.o, r.d, r.t, r.valid = pi.shape_index, pi.prim_index, pi.prim_uv, rays.o, rays.d, pi.t, si.is_valid()
+    assert dr.count(r.valid)[0] > 10
+    rebuilt = rebuild_interaction(mi_scene, r, r.valid)
+    assert float(dr.max(dr.abs(dr.select(r.valid, rebuilt.p - si.p, 0.0)), axis=None)[0]) == 0.0
+    assert float(dr.max(dr.abs(dr.select(r.valid, rebuilt.n - si.n, 0.0)), axis=None)[0]) == 0.0
+    params = scene.params
+    offset = mi.Vector3f(0.1, -0.2, 0.05)
+    v = dr.unravel(mi.Point3f, params["cube.vertex_positions"])
+    params["cube.vertex_positions"] = dr.ravel(v + offset)
+    params.update()
+    moved = rebuild_interaction(mi_scene, r, r.valid)
+    assert float(dr.max(dr.abs(dr.select(r.valid, moved.p - (si.p + offset), 0.0)), axis=None)[0]) < 1e-5
+
+
+# ---------------------------------------------------------------------------------- T-U7
+def test_determinism_and_state_round_trip(oxalis):
+    a = ReSTIRSampler(oxalis, candidates=4, burn_in=3)
+    b = ReSTIRSampler(oxalis, candidates=4, burn_in=3)
+    for s in range(3):
+        ia, ib = render(oxalis, {}, spp=2, seed=s, sampler=a), render(oxalis, {}, spp=2, seed=s, sampler=b)
+        assert torch.equal(ia, ib)
+    state = a.state_dict()
+    c = ReSTIRSampler(oxalis, candidates=4, burn_in=3)
+    c.load_state_dict(state)
+    assert c.steps == a.steps == {0: 3}
+    ia, ic = render(oxalis, {}, spp=2, seed=7, sampler=a), render(oxalis, {}, spp=2, seed=7, sampler=c)
+    assert torch.equal(ia, ic)
+    fresh = render(oxalis, {}, spp=2, seed=7, sampler=ReSTIRSampler(oxalis, candidates=4, burn_in=0))
+    assert not torch.equal(ia, fresh)  # the state matters
+    with pytest.raises(ValueError):
+        c.load_state_dict({"nope": 1})
+
+
+def test_automatic_reset_on_topology_change(oxalis):
+    r = ReSTIRSampler(oxalis, candidates=2, burn_in=1)
+    render(oxalis, {}, spp=1, seed=0, sampler=r)
+    render(oxalis, {}, spp=1, seed=1, sampler=r)
+    assert r.steps == {0: 2}
+    r.integrator.states[0].signature = (-1,)  # what a changed emitter count / topology looks like
+    render(oxalis, {}, spp=1, seed=2, sampler=r)
+    assert r.steps == {0: 1}
+
+
+# ---------------------------------------------------------------------------------- T-U8
+def test_grid_equals_kdtree_on_random_surface_points():
+    rng = np.random.default_rng(0)
+    pts = rng.random((3000, 3)).astype(np.float32)
+    pts[:, 2] = 0.3 * np.sin(3 * pts[:, 0])  # a curved surface
+    qs = pts[:1500] + rng.normal(0, 0.01, (1500, 3)).astype(np.float32)
+    P = mi.Point3f(*[mi.Float(pts[:, i]) for i in range(3)])
+    Q = mi.Point3f(*[mi.Float(qs[:, i]) for i in range(3)])
+    for exclude_self, queries in ((False, Q), (True, P)):
+        (ia, oa), (ib, ob) = knn_kdtree(P, queries, 4, 0.04, exclude_self), knn_grid(P, queries, 4, 0.04, exclude_self)
+        for x, y, m, n in zip(ia, ib, oa, ob):
+            assert np.array_equal(np.asarray(m), np.asarray(n))
+            assert np.array_equal(np.asarray(x)[np.asarray(m)], np.asarray(y)[np.asarray(m)])
+        assert 0.2 < np.mean([np.asarray(m).mean() for m in oa]) < 1.0  # the radius binds sometimes
+
+
+def test_grid_and_kdtree_give_identical_images(oxalis):
+    imgs = {}
+    for backend in ("kdtree", "grid"):
+        r = ReSTIRSampler(oxalis, candidates=4, burn_in=2, nn_backend=backend)
+        imgs[backend] = [render(oxalis, {}, spp=2, seed=s, sampler=r) for s in range(2)]
+    for a, b in zip(imgs["kdtree"], imgs["grid"]):
+        assert torch.equal(a, b)
+
+
+def test_knn_empty_sets():
+    empty = mi.Point3f(mi.Float([]), mi.Float([]), mi.Float([]))
+    one = mi.Point3f(0.0, 0.0, 0.0)
+    for fn in (knn_kdtree, knn_grid):
+        idx, ok = fn(empty, one, 2, 1.0)
+        assert len(idx) == 2 and not np.asarray(ok[0]).any()
+
+
+# ---------------------------------------------------------------------------------- T-U9
+def test_torch_bridge_equals_direct_drjit_call(oxalis):
+    torch.manual_seed(2)
+    weights = torch.rand(3, RES, RES)
+    tex = oxalis.get(KEY)
+    a = ReSTIRSampler(oxalis, candidates=4, burn_in=2)
+    t = tex.clone().requires_grad_()
+    img = render(oxalis, {KEY: t}, spp=2, seed=11, sampler=a)
+    (img * weights).sum().backward()
+
+    b = ReSTIRSampler(oxalis, candidates=4, burn_in=2)
+    params = oxalis.params
+    value = mi.TensorXf(tex.numpy())
+    dr.enable_grad(value)
+    params[KEY] = value
+    params.update()
+    image, cache = b.integrator.step(oxalis.mi_scene, 0, 11, 2)
+    grad_in = mi.TensorXf(weights.permute(1, 2, 0).contiguous().numpy())
+    b.integrator.backward(oxalis.mi_scene, cache, grad_in, 12345, 2)
+    direct = torch.from_numpy(np.array(dr.grad(value)))
+    params[KEY] = mi.TensorXf(tex.numpy())
+    params.update()
+    assert torch.allclose(img.permute(1, 2, 0), torch.from_numpy(np.array(image)), rtol=1e-6, atol=0)
+    assert torch.allclose(t.grad, direct, rtol=1e-5, atol=1e-7)
+
+    # second step on the same sampler: the gradient is still non-zero (set_dirty regression)
+    t2 = tex.clone().requires_grad_()
+    (render(oxalis, {KEY: t2}, spp=2, seed=12, sampler=a) * weights).sum().backward()
+    assert float(t2.grad.abs().sum()) > 0
+
+
+def test_emitter_intensity_gradient(oxalis):
+    spot = oxalis.get(SPOT).requires_grad_()
+    r = ReSTIRSampler(oxalis, candidates=4, burn_in=2)
+    render(oxalis, {SPOT: spot}, spp=2, seed=0, sampler=r).sum().backward()
+    assert (spot.grad > 0).all()
+
+
+def test_multiview_keeps_one_chain_per_sensor():
+    from torchir.scenes import oxalis_lite
+
+    d = oxalis_lite.build(resolution=16, texture=4, dim_lights=1, hidden_lights=1)
+    d["sensor_b"] = torchir.scenes._common.perspective([0.5, 0.2, 3.0], [0, 0, 0], [0, 1, 0], 40.0, 16, 16)
+    scene = torchir.Scene.from_dict(d)
+    r = ReSTIRSampler(scene, candidates=2, burn_in=1)
+    for step in range(3):
+        for view in (0, 1):
+            img = render(scene, {}, spp=1, seed=step, sensor=view, sampler=r)
+            assert img.shape == (3, 16, 16) and torch.isfinite(img).all()
+    render(scene, {}, spp=1, seed=9, sensor=1, sampler=r)
+    assert r.steps == {0: 3, 1: 4}
+
+
+# ---------------------------------------------------------------------------------- errors
+def test_clear_errors(oxalis, cbox):
+    with pytest.raises(ValueError, match="indirect"):
+        ReSTIRSampler(cbox)
+    env = torchir.Scene.from_dict({"type": "scene", "integrator": {"type": "prb", "max_depth": 2},
+                                   "sensor": torchir.scenes._common.perspective([0, 0, 3], [0, 0, 0], [0, 1, 0], 40, 8, 8),
+                                   "s": {"type": "sphere"}, "env": {"type": "constant"}})
+    with pytest.raises(ValueError, match="environment"):
+        ReSTIRSampler(env)
+    vol = torchir.Scene.from_dict({"type": "scene", "integrator": {"type": "prb", "max_depth": 2},
+                                   "sensor": torchir.scenes._common.perspective([0, 0, 3], [0, 0, 0], [0, 1, 0], 40, 8, 8),
+                                   "s": {"type": "sphere", "interior": {"type": "homogeneous"}}, "l": {"type": "point", "position": [0, 0, 2]}})
+    with pytest.raises(ValueError, match="media"):
+        ReSTIRSampler(vol)
+    with pytest.raises(ValueError, match="grad_paths"):
+        ReSTIRSampler(oxalis, grad_paths="both")
+    with pytest.raises(ValueError, match="preset"):
+        ReSTIRSampler(oxalis, preset="b3")
+    with pytest.raises(ValueError, match="candidates"):
+        ReSTIRSampler(oxalis, candidates=0)
+    with pytest.raises(ValueError, match="radius"):
+        ReSTIRSampler(oxalis, radius=-1.0)
+    with pytest.raises(TypeError):
+        render(oxalis, {}, spp=1, sampler=object())
+    with pytest.raises(ValueError, match="another Scene"):
+        render(cbox, {}, spp=1, sampler=ReSTIRSampler(oxalis))
+    assert SAMPLERS["restir"] is ReSTIRSampler
+
+
+def test_diagnostics_keys(oxalis):
+    r = ReSTIRSampler(oxalis, candidates=2, burn_in=1)
+    t = oxalis.get(KEY).requires_grad_()
+    render(oxalis, {KEY: t}, spp=1, seed=0, sampler=r).sum().backward()
+    d = r.diagnostics()
+    for key in ("mean_M", "max_M", "valid_neighbors", "frac_W0", "max_W", "time_ris", "time_nn", "time_combine", "time_backward"):
+        assert key in d and isinstance(d[key], float) and math.isfinite(d[key])
+    assert 2 < d["mean_M"] <= d["max_M"] <= 40
+
+
+# ---------------------------------------------------------------------------------- v2
+def test_shape_interior_gradient_matches_finite_differences(tmp_path):
+    """Stage v2 interior term (ray-following shading points) on a plane that fills the view,
+    so there is no visibility boundary: d(sum image)/d(z offset) equals central differences,
+    for a spot and a point light (falloff and 1/d^2 differentiated through the hit point)."""
+    obj = tmp_path / "plane.obj"
+    obj.write_text("v -4 -4 0\nv 4 -4 0\nv 4 4 0\nv -4 4 0\nvn 0 0 1\nvn 0 0 1\nvn 0 0 1\nvn 0 0 1\nf 1//1 2//2 3//3\nf 1//1 3//3 4//4\n")
+    T = mi.ScalarTransform4f
+    scene = torchir.Scene.from_dict({
+        "type": "scene",
+        "integrator": {"type": "prb", "max_depth": 2},
+        "sensor": torchir.scenes._common.perspective([0, 0, 3.0], [0, 0, 0], [0, 1, 0], 30.0, 16, 16),
+        "plane": {"type": "obj", "filename": str(obj), "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}},
+        "spot": {"type": "spot", "to_world": T().look_at(origin=[0.5, 0.5, 2.5], target=[0, 0, 0], up=[0, 1, 0]),
+                 "intensity": {"type": "rgb", "value": 20.0}, "cutoff_angle": 30.0},
+        "point": {"type": "point", "position": [-0.5, 0.5, 1.5], "intensity": {"type": "rgb", "value": 2.0}},
+    })
+    key = "plane.vertex_positions"
+    base = scene.get(key)
+    r = ReSTIRSampler(scene, preset="b1")
+    moved = lambda off: (base.view(-1, 3) + off).reshape(-1)  # noqa: E731
+    off = torch.zeros(3, requires_grad=True)
+    with pytest.warns(UserWarning, match="stage v2"):
+        render(scene, {key: moved(off)}, spp=4, seed=3, sampler=r).sum().backward()
+    h = 1e-2
+    lp = float(render(scene, {key: moved(torch.tensor([0, 0, h]))}, spp=4, seed=3, sampler=r).sum())
+    lm = float(render(scene, {key: moved(torch.tensor([0, 0, -h]))}, spp=4, seed=3, sampler=r).sum())
+    fd = (lp - lm) / (2 * h)
+    assert abs(fd) > 1.0
+    assert abs(float(off.grad[2]) - fd) <= 2e-3 * abs(fd)
+
+
+# ---------------------------------------------------------------------------------- area lights
+@pytest.fixture(scope="module")
+def area_scene() -> torchir.Scene:
+    """Canvas under a small area light (seen by the camera), a point light and a spot."""
+    from torchir.scenes import oxalis_lite
+
+    d = oxalis_lite.build(resolution=RES, texture=6, dim_lights=1, hidden_lights=1)
+    d["sensor"]["fov"] = 60.0
+    d["panel"] = {
+        "type": "rectangle",
+        "to_world": mi.ScalarTransform4f().look_at(origin=[0.6, 0.6, 1.2], target=[0, 0, 0], up=[0, 1, 0]).scale(0.15),
+        "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [6.0, 5.0, 4.0]}},
+    }
+    return torchir.Scene.from_dict(d)
+
+
+def test_area_light_m1_equals_light_sampling(area_scene):
+    from torchir.integrators.restir_di import _develop, _sample_rays
+
+    r = ReSTIRSampler(area_scene, preset="b1")
+    img = render(area_scene, {}, spp=1, seed=4, sampler=r).permute(1, 2, 0).numpy()
+    scene = area_scene.mi_scene
+    sensor = scene.sensors()[0]
+    sampler = sensor.sampler().fork()
+    sampler.set_sample_count(1)
+    sampler.set_samples_per_wavefront(1)
+    sampler.seed(4, RES * RES)
+    ray, weight = _sample_rays(sensor, sampler, 1, RES, RES)
+    si = scene.ray_intersect(mi.Ray3f(ray))
+    ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, si.is_valid())
+    fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), si.is_valid())
+    hand = _develop(weight * (si.emitter(scene).eval(si) + em_weight * fs), 1, RES, RES).numpy()
+    assert hand.max() > 1.0  # the panel is in view
+    assert np.abs(img - hand).max() <= 1e-5 * np.abs(hand).max()
+
+
+def test_area_light_reuse_unbiased(area_scene):
+    refs = np.stack([render(area_scene, {}, spp=512, seed=8000 + i).numpy() for i in range(4)])
+    ref = refs.mean(0)
+    chains = _chains(area_scene, 10, 8, 2, candidates=4, burn_in=4)
+    assert np.isfinite(chains).all()
+    ratio, se = _mean_ratio_and_se(chains, ref)
+    ref_means = refs.reshape(4, -1).mean(1)
+    assert se < 0.05
+    assert abs(ratio - 1) < 3 * math.hypot(se, ref_means.std(ddof=1) / 2.0 / ref_means.mean())
+
+
+def test_mitsuba_registration_and_mi_render(oxalis):
+    """``{'type': 'restir_di'}`` works with Mitsuba's own render op (render + render_backward)."""
+    from torchir.integrators import register
+
+    register()
+    integrator = mi.load_dict({"type": "restir_di", "candidates": 2, "burn_in": 1})
+    assert type(integrator).__name__ == "ReSTIRDirectIntegrator"
+    params = mi.traverse(oxalis.mi_scene)
+    dr.enable_grad(params[KEY])
+    params.update()
+    image = mi.render(oxalis.mi_scene, params, integrator=integrator, spp=2, seed=0)
+    assert image.shape == (RES, RES, 3)
+    dr.backward(dr.sum(image, axis=None))
+    assert float(dr.sum(dr.abs(dr.grad(params[KEY]).array))[0]) > 0
+    dr.disable_grad(params[KEY])
+    params.update()
+    with pytest.raises(RuntimeError, match="max_depth must be 2"):  # Mitsuba's parser wraps the ValueError
+        mi.load_dict({"type": "restir_di", "max_depth": 5})
+
+
+@pytest.mark.slow
+def test_shape_gradient_with_boundary_terms_matches_direct_projective():
+    """Stage v2 total: ReSTIR interior term + direct_projective boundary terms (sppc=0) equal
+    Mitsuba's full direct_projective gradient for a cube casting a shadow (point lights:
+    Mitsuba's interior term differentiates their 1/d^2; it drops the spot falloff, see the
+    finite-difference test above)."""
+    T = mi.ScalarTransform4f
+    scene = torchir.Scene.from_dict({
+        "type": "scene",
+        "integrator": {"type": "direct_projective"},
+        "sensor": torchir.scenes._common.perspective([0, 0, 3.0], [0, 0, 0], [0, 1, 0], 40.0, 24, 24),
+        "floor": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}},
+        "blocker": {"type": "cube", "to_world": T().translate([0.2, 0.1, 0.6]).scale(0.2), "bsdf": {"type": "diffuse"}},
+        "key": {"type": "point", "position": [0.5, 0.5, 2.5], "intensity": {"type": "rgb", "value": 20.0}},
+        "fill": {"type": "point", "position": [-1, 0.5, 2.0], "intensity": {"type": "rgb", "value": 2.0}},
+    })
+    key = "blocker.vertex_positions"
+    base = scene.get(key)
+
+    def grads(sampler, n=8):
+        out = []
+        for i in range(n):
+            off = torch.zeros(3, requires_grad=True)
+            render(scene, {key: (base.view(-1, 3) + off).reshape(-1)}, spp=64, seed=100 + i, sampler=sampler).sum().backward()
+            out.append(off.grad.clone())
+        g = torch.stack(out)
+        return g.mean(0), g.std(0) / math.sqrt(n)
+
+    ref, ref_se = grads(None)
+    with pytest.warns(UserWarning, match="stage v2"):
+        ours, se = grads(ReSTIRSampler(scene, candidates=4, burn_in=4))
+    assert (ref.abs() > 4 * ref_se).all()  # every component is resolved
+    assert ((ours - ref).abs() <= 4 * torch.sqrt(se**2 + ref_se**2)).all()
+
+
+def test_oxalis_lite_emitter_pdf_option():
+    uniform = torchir.Scene.builtin("oxalis_lite", resolution=8, texture=4, dim_lights=2, hidden_lights=2)
+    power = torchir.Scene.builtin("oxalis_lite", resolution=8, texture=4, dim_lights=2, hidden_lights=2, emitter_pdf="power")
+    pu = [float(uniform.mi_scene.pdf_emitter(i)[0]) for i in range(6)]
+    pp = [float(power.mi_scene.pdf_emitter(i)[0]) for i in range(6)]
+    assert np.allclose(pu, 1 / 6) and abs(sum(pp) - 1) < 1e-5 and max(pp) > 10 * min(pp)
+    with pytest.raises(ValueError, match="emitter_pdf"):
+        torchir.Scene.builtin("oxalis_lite", emitter_pdf="light")

@@ -1,0 +1,305 @@
+"""Pixel samplers without a renderer (spec adaptive-sampling §6.1): pmf validity, draws,
+unbiasedness with known moments, multi-resolution, refresh schedule, extremes."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchir.samplers import (
+    SAMPLERS,
+    AdaptivePixelSampler,
+    LossPixelSampler,
+    PixelBatch,
+    UniformPixelSampler,
+    _pmf,
+)
+
+H, W = 16, 12
+
+
+def _sampler(cls=AdaptivePixelSampler, views=1, **kw):
+    return cls(**{"resolution": (H, W), "views": views, "budget": 64, **kw})
+
+
+# ------------------------------------------------------------------------------------ pmf
+@pytest.mark.parametrize("multires", ["equal", "paper"])
+def test_pmf_is_valid_and_floored(multires):
+    g = torch.Generator().manual_seed(0)
+    s = _sampler(views=2, multires=multires, alpha=0.1)
+    p1 = [torch.rand(2, 8, 6, generator=g), torch.rand(2, 4, 3, generator=g)]
+    p2 = [torch.rand(2, 8, 6, generator=g).float(), torch.rand(2, 4, 3, generator=g)]
+    pmf = s.update_from_maps(p1, p2)
+    m = 2 * H * W
+    assert pmf.shape == (2, H, W) and pmf.dtype == torch.float64
+    assert abs(float(s.pdf.sum()) - 1.0) < 1e-12
+    assert float(s.pdf.min()) >= 0.1 / m * (1 - 1e-9)
+
+
+def test_multires_modes_weight_levels_as_specified():
+    # Level 0 puts all mass on the left half, level 1 on the right half.
+    p1_fine, p1_coarse = torch.zeros(1, 32, 32), torch.zeros(1, 16, 16)
+    p1_fine[..., :16], p1_coarse[..., 8:] = 1.0, 1.0
+    ones = [torch.ones(1, 32, 32), torch.ones(1, 16, 16)]
+    with pytest.warns(UserWarning, match="alpha=0"):
+        equal = _sampler(multires="equal", alpha=0.0, sigma=0.0, resolution=(32, 32))
+        paper = _sampler(multires="paper", alpha=0.0, sigma=0.0, resolution=(32, 32))
+    for s in (equal, paper):
+        s.update_from_maps([p1_fine, p1_coarse], ones)
+    left = lambda s: float(s.pdf_image()[..., :16].sum())
+    # equal: w = (1/2, 1/2); paper: w ∝ (1, 4) -> 1/5 on the fine level. Bilinear upsampling
+    # gives the coarse level's first left column p1 = 1/4, so q = sqrt(1/4): it leaks
+    # 0.5 / 16.5 of that level's mass across the centre.
+    leak = 0.5 / 16.5
+    assert left(equal) == pytest.approx(0.5 + 0.5 * leak, abs=1e-3)
+    assert left(paper) == pytest.approx(0.2 + 0.8 * leak, abs=1e-3)
+    assert left(equal) > left(paper) + 0.2
+
+
+def test_single_level_equals_explicit_computation():
+    g = torch.Generator().manual_seed(1)
+    p1, p2 = torch.rand(1, H, W, generator=g), torch.rand(1, H, W, generator=g)
+    s = _sampler(alpha=0.25, sigma=0.0, levels=0)
+    s.update_from_maps(p1, p2)
+    q = (p1.double() * p2.double()).sqrt()
+    expected = 0.75 * q / q.sum() + 0.25 / (H * W)
+    torch.testing.assert_close(s.pdf_image(), expected, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("which", ["p1", "p2"])
+def test_all_zero_factor_falls_back_to_uniform(which):
+    maps = {"p1": torch.rand(1, H, W), "p2": torch.rand(1, H, W)}
+    maps[which] = torch.zeros(1, H, W)
+    s = _sampler()
+    s.update_from_maps(maps["p1"], maps["p2"])
+    torch.testing.assert_close(s.pdf, torch.full((H * W,), 1.0 / (H * W), dtype=torch.float64), rtol=1e-12, atol=0)
+    assert torch.isfinite(s.sample().weight).all()
+
+
+def test_nan_maps_warn_and_fall_back_never_nan_weights():
+    p1 = torch.rand(1, H, W)
+    p1[0, 3, 3] = float("nan")
+    s = _sampler()
+    with pytest.warns(UserWarning, match="NaN/Inf"):
+        s.update_from_maps(p1, torch.rand(1, H, W))
+    batch = s.sample()
+    assert torch.isfinite(batch.weight).all() and float(s.pdf.min()) > 0
+
+
+def test_one_hot_pixel_mass():
+    p1 = torch.zeros(1, H, W)
+    p1[0, 5, 7] = 1.0
+    s = _sampler(alpha=0.1, sigma=0.0)
+    s.update_from_maps(p1, torch.ones(1, H, W))
+    m = H * W
+    assert float(s.pdf_image()[0, 5, 7]) == pytest.approx(0.9 + 0.1 / m, rel=1e-12)
+    # with the default blur the hot pixel keeps the blur kernel's centre share
+    blurred = _sampler(alpha=0.1)
+    blurred.update_from_maps(p1, torch.ones(1, H, W))
+    share = float(blurred.pdf_image()[0, 5, 7] - 0.1 / m) / 0.9
+    assert 0.05 < share < 0.5
+
+
+def test_bad_maps_raise():
+    s = _sampler(views=2)
+    with pytest.raises(ValueError, match=r"\(2, h, w\)"):
+        s.update_from_maps(torch.rand(1, H, W), torch.rand(1, H, W))
+    with pytest.raises(ValueError, match="level"):
+        s.update_from_maps([torch.rand(2, 4, 4)], [torch.rand(2, 4, 4), torch.rand(2, 2, 2)])
+    with pytest.raises(TypeError):
+        s.update_from_maps([[1.0]], None)
+
+
+# ---------------------------------------------------------------------------- budgets
+def test_budgets():
+    m = H * W
+    assert _sampler(budget=1).sample().index.shape == (1,)
+    assert _sampler(budget=0.1).budget == round(0.1 * m)
+    assert _sampler(budget=1e-6).budget == 1
+    big = _sampler(budget=3 * m)
+    assert big.sample().index.shape == (3 * m,)  # with replacement
+    for bad in (0, -3):
+        with pytest.raises(ValueError, match="budget"):
+            _sampler(budget=bad)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="budget"):
+            _sampler(budget=bad)
+    with pytest.raises(TypeError, match="budget"):
+        _sampler(budget=True)
+
+
+def test_construction_errors():
+    with pytest.raises(ValueError, match="scene, or resolution"):
+        AdaptivePixelSampler(budget=4)
+    with pytest.raises(ValueError, match="alpha"):
+        _sampler(alpha=1.5)
+    with pytest.raises(ValueError, match="refresh_every"):
+        _sampler(refresh_every=0)
+    with pytest.raises(ValueError, match="multires"):
+        _sampler(multires="sum")
+    assert _sampler(update_every=7).refresh_every == 7  # DESIGN.md's name
+    with pytest.warns(UserWarning, match="alpha=0"):
+        _sampler(alpha=0.0)
+
+
+def test_registry():
+    assert SAMPLERS["uniform"] is UniformPixelSampler and SAMPLERS["adaptive"] is AdaptivePixelSampler
+    assert SAMPLERS["loss"] is LossPixelSampler
+
+
+# ------------------------------------------------------------------------------ draws
+def test_chi_square_of_draws():
+    g = torch.Generator().manual_seed(3)
+    pmf = torch.rand(1000, generator=g, dtype=torch.float64) ** 3 + 1e-3
+    pmf /= pmf.sum()
+    cdf = _pmf.cumulative(pmf)
+    n = 1_000_000
+    index, prob = _pmf.draw(cdf, n, torch.Generator().manual_seed(4))
+    torch.testing.assert_close(prob, pmf[index], rtol=1e-9, atol=1e-15)  # weights use the realised pmf
+    counts = torch.bincount(index, minlength=1000).double()
+    expected = n * pmf
+    chi2 = float(((counts - expected) ** 2 / expected).sum())
+    # 999 degrees of freedom: p-value > 1e-3 <=> chi2 < 1153 (Wilson-Hilferty)
+    dof = 999
+    z = ((chi2 / dof) ** (1 / 3) - (1 - 2 / (9 * dof))) / math.sqrt(2 / (9 * dof))
+    assert z < 3.09, chi2
+
+
+def test_huge_image_beyond_multinomial_limit():
+    s = UniformPixelSampler(resolution=(4096, 8192), views=1, budget=10)  # 2^25 pixels
+    batch = s.sample()
+    assert int(batch.index.max()) < 2**25 and batch.index.dtype == torch.int64
+    torch.testing.assert_close(batch.weight, torch.full((10,), 1 / 10.0))
+
+
+def test_same_seed_same_indices_and_state_round_trip():
+    a, b = _sampler(seed=5), _sampler(seed=5)
+    p1 = torch.rand(1, H, W, generator=torch.Generator().manual_seed(0))
+    a.update_from_maps(p1, torch.ones(1, H, W))
+    b.update_from_maps(p1, torch.ones(1, H, W))
+    assert torch.equal(a.sample().index, b.sample().index)
+    state = a.state_dict()
+    after = a.sample()
+    c = _sampler(seed=99)
+    c.load_state_dict(state)
+    again = c.sample()
+    assert torch.equal(after.index, again.index) and torch.equal(after.weight, again.weight)
+    with pytest.raises(ValueError, match="strategy|sampler"):
+        UniformPixelSampler(resolution=(H, W), budget=4).load_state_dict(state)
+
+
+def test_view_restriction_and_global_indices():
+    s = _sampler(views=3, budget=500)
+    batch = s.sample(views=[2])
+    assert bool(((batch.index // (H * W)) == 2).all())
+    with pytest.raises(ValueError, match="views"):
+        s.sample(views=[3])
+
+
+# ---------------------------------------------------------------------- unbiasedness
+def _estimate(sampler: AdaptivePixelSampler, losses: torch.Tensor, draws: int) -> torch.Tensor:
+    values = []
+    for _ in range(draws):
+        batch = sampler.sample()
+        values.append(float((batch.weight.double() * losses[batch.index]).sum()))
+    return torch.tensor(values, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("cls", [UniformPixelSampler, AdaptivePixelSampler])
+def test_weighted_sum_is_unbiased_for_the_mean(cls):
+    g = torch.Generator().manual_seed(11)
+    losses = torch.rand(2 * H * W, generator=g, dtype=torch.float64) ** 4
+    s = cls(resolution=(H, W), views=2, budget=32, seed=1)
+    s.update_from_maps(torch.rand(2, H, W, generator=g), torch.rand(2, H, W, generator=g))
+    est = _estimate(s, losses, 4000)
+    se = float(est.std()) / math.sqrt(est.numel())
+    assert abs(float(est.mean()) - float(losses.mean())) < 4 * se
+
+
+def test_synthetic_gradient_estimator_unbiased_and_variance_matches_theory():
+    """Pixels with known per-pixel moments (spec §6.1 item 6): ⟨∂L/∂I_j⟩ ~ N(a_j, sa_j²),
+    ⟨dI_j/dθ⟩ ~ N(b_j, sb_j²) with m_θ = 5, independent; the single-draw estimator's mean and
+    trace variance follow E3/E5/E8."""
+    g = torch.Generator().manual_seed(2)
+    m, k = H * W, 5
+    a, sa = torch.randn(m, generator=g, dtype=torch.float64), 0.5 * torch.rand(m, generator=g, dtype=torch.float64)
+    b = torch.randn(m, k, generator=g, dtype=torch.float64) * torch.logspace(-1, 1, m, dtype=torch.float64)[:, None]
+    sb = 0.3 * torch.rand(m, k, generator=g, dtype=torch.float64)
+    exact = (a[:, None] * b).sum(0) / m  # gradient of the mean loss
+    p1, p2 = a**2 + sa**2, (b**2 + sb**2).sum(1)
+    with pytest.warns(UserWarning, match="alpha=0"):
+        s = AdaptivePixelSampler(resolution=(H, W), views=1, budget=1, alpha=0.0, sigma=0.0, levels=0, seed=3)
+    s.update_from_maps((p1.reshape(1, H, W)), p2.reshape(1, H, W))
+    draws = 20000
+    batch = [s.sample() for _ in range(draws)]
+    index = torch.cat([bt.index for bt in batch])
+    weight = torch.cat([bt.weight for bt in batch]).double()
+    noise = torch.Generator().manual_seed(4)
+    adj = a[index] + sa[index] * torch.randn(draws, generator=noise, dtype=torch.float64)
+    der = b[index] + sb[index] * torch.randn(draws, k, generator=noise, dtype=torch.float64)
+    grads = weight[:, None] * adj[:, None] * der  # (draws, k)
+    se = grads.std(0) / math.sqrt(draws)
+    assert bool(((grads.mean(0) - exact).abs() < 4 * se).all())
+    # E5/E8: trace of the second moment = sum_j p1_j p2_j / (m^2 p_j)
+    p = s.pdf
+    second = float((p1 * p2 / p).sum()) / m**2
+    predicted = second - float(exact.square().sum())
+    empirical = float(grads.var(0).sum())
+    assert abs(empirical / predicted - 1) < 0.05
+
+
+def test_variance_ordering_oracle_eq5_uniform():
+    g = torch.Generator().manual_seed(8)
+    m = H * W
+    a = torch.randn(m, generator=g, dtype=torch.float64)
+    b = torch.logspace(-1, 1, m, dtype=torch.float64)[torch.randperm(m, generator=g)]  # p2 varies 100x
+    p1, p2 = a**2, b**2
+
+    def trace_second_moment(sampler):
+        return float((p1 * p2 / sampler.pdf).sum())
+
+    with pytest.warns(UserWarning, match="alpha=0"):
+        oracle = AdaptivePixelSampler(resolution=(H, W), budget=1, alpha=0.0, sigma=0.0, levels=0)
+        eq5 = LossPixelSampler(resolution=(H, W), budget=1, alpha=0.0, sigma=0.0, levels=0)
+    oracle.update_from_maps(p1.reshape(1, H, W), p2.reshape(1, H, W))
+    eq5.update_from_maps(p1.reshape(1, H, W))
+    uniform = UniformPixelSampler(resolution=(H, W), budget=1)
+    assert trace_second_moment(oracle) < trace_second_moment(eq5) < trace_second_moment(uniform)
+
+
+def test_zero_adjoint_gives_exactly_zero_gradient():
+    s = _sampler()
+    s.update_from_maps(torch.zeros(1, H, W), torch.rand(1, H, W))
+    batch = s.sample()
+    assert float((batch.weight * torch.zeros(H * W)[batch.index]).sum()) == 0.0
+
+
+# --------------------------------------------------------------------------- schedule
+def test_refresh_schedule_and_reshape():
+    s = AdaptivePixelSampler(resolution=(H, W), budget=4, refresh_every=20)
+    params = {"tex": torch.zeros(4, 4, 3)}
+    runs = []
+    for step in range(61):
+        if s.due(step, params):
+            runs.append(step)
+            s.last_update, s._signature = step, s._signature_of(params, None)  # what update() records
+    assert runs == [0, 20, 40, 60]
+    assert s.due(41, {"tex": torch.zeros(8, 8, 3)})  # re-gridded texture: refresh at once
+    assert not UniformPixelSampler(resolution=(H, W), budget=4).due(0, params)
+
+
+def test_stage1_grids():
+    from torchir.samplers.pixel import _stage1_grids
+
+    assert _stage1_grids((128, 128), 4, 32, 4) == [(32, 32), (16, 16), (8, 8), (4, 4)]
+    assert _stage1_grids((64, 64), 4, 32, 4)[0] == (32, 32)
+    assert _stage1_grids((16, 16), 4, 32, 4) == [(16, 16), (8, 8), (4, 4)]
+    assert _stage1_grids((16, 16), 4, 32, 0) == [(16, 16)]
+    assert _stage1_grids((1, 1), 4, 32, 4) == [(1, 1)]
+    assert _stage1_grids((40, 96), 4, 32, 1) == [(32, 77), (16, 38)]
+
+
+def test_pixel_batch_fields():
+    batch = UniformPixelSampler(resolution=(H, W), budget=3).sample()
+    assert isinstance(batch, PixelBatch) and batch.weight.dtype == torch.float32

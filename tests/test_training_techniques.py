@@ -1,0 +1,80 @@
+"""The four techniques inside training runs: every technique config builds, sampler state
+survives checkpoints (resume == uninterrupted), and incompatible combinations are refused."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from torchir import cli
+from torchir.training import InverseRenderingModule
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("config", CONFIGS, ids=[c.stem for c in CONFIGS])
+def test_every_config_builds_its_module(config):
+    model = dict(yaml.safe_load(config.read_text())["model"])
+    model["resolution"] = 16
+    module = InverseRenderingModule(**model)
+    assert module.keys and module.loss_fn is not None
+    for section in ("denoiser", "sampler"):
+        if isinstance(model.get(section), dict) and model[section].get("type") not in (None, "none"):
+            assert getattr(module, section) is not None
+
+
+def _fit(tmp_path: Path, config: str, *overrides: str) -> int:
+    return cli.main(
+        ["fit", "--config", str(ROOT / "configs" / config), "--model.resolution", "16", "--trainer.enable_progress_bar", "false",
+         "--trainer.enable_model_summary", "false", "--trainer.logger.init_args.save_dir", str(tmp_path),
+         "--checkpoint.every_n_train_steps", "3", "--trainer.max_steps", "6", *overrides]
+    )
+
+
+def _latents(ckpt: Path) -> dict[str, torch.Tensor]:
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    return {k: v for k, v in state.items() if k.endswith("latent")}
+
+
+@pytest.mark.parametrize(
+    ("config", "overrides"),
+    [
+        ("sampling_adaptive.yaml", ["--model.sampler.refresh_every", "2"]),
+        ("restir.yaml", ["--model.sampler.burn_in", "2", "--model.spp", "1"]),
+    ],
+    ids=["adaptive", "restir"],
+)
+def test_resume_restores_the_sampler_state(tmp_path, config, overrides):
+    """Resuming at step 3 of 6 ends where the uninterrupted run ends (to float32 atomics,
+    rtol 1e-5, see test_training): the pmf / reservoirs and the draw generator come back from
+    the checkpoint, which Lightning loads with weights_only=True."""
+    name = yaml.safe_load((ROOT / "configs" / config).read_text())["trainer"]["logger"][0]["init_args"]["name"]
+    assert _fit(tmp_path / "a", config, *overrides) == 0
+    folder = tmp_path / "a" / name / "version_0" / "checkpoints"
+    middle = folder / "epoch=2-step=3.ckpt"
+    state = torch.load(middle, map_location="cpu", weights_only=True)
+    assert "torchir_sampler" in state
+    assert _fit(tmp_path / "b", config, *overrides, "--ckpt_path", str(middle)) == 0
+    full = _latents(folder / "last.ckpt")
+    resumed = _latents(tmp_path / "b" / name / "version_0" / "checkpoints" / "last.ckpt")
+    for key in full:
+        torch.testing.assert_close(resumed[key], full[key], rtol=1e-5, atol=1e-6)
+        assert not torch.equal(_latents(middle)[key], full[key])
+
+
+def test_loss_and_denoiser_by_name_with_options():
+    module = InverseRenderingModule(scene="glossy_highlight", resolution=16, parameters={"light.azimuth": {"init": 0.5}},
+                                    loss={"type": "loi", "alphas": [1, 5], "sigmas": [1]})
+    assert type(module.loss_fn).__name__ == "LOILoss" and not module.loss_fn.pixelwise
+    with pytest.raises(ValueError, match="model.loss"):
+        InverseRenderingModule(scene="cbox", resolution=16, loss={"type": "l3"})
+    with pytest.raises(ValueError, match="model.loss .loi."):
+        InverseRenderingModule(scene="cbox", resolution=16, loss={"type": "loi", "alpha": 3})
+    with pytest.raises(ValueError, match="couples pixels"):
+        InverseRenderingModule(scene="cbox", resolution=16, loss={"type": "loi"}, sampler={"type": "adaptive", "budget": 8})
+    assert InverseRenderingModule(scene="cbox", resolution=16, denoiser={"type": "none"}).denoiser is None
+    with pytest.raises(ValueError, match="model.denoiser.type"):
+        InverseRenderingModule(scene="cbox", resolution=16, denoiser={"type": "oidn"})

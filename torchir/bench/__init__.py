@@ -1,0 +1,55 @@
+"""``torchir bench``: the speed/accuracy trade of each technique, measured, in one report.
+
+Each suite is a module of this package with ``main(argv)`` that takes ``--quick`` and
+``--out DIR``, prints its tables (Markdown) and writes ``results.json`` and PNG plots into
+``DIR`` (optionally ``summary.md``); ``scripts/bench_<suite>.py`` are thin wrappers around the
+same modules. The suite's output is kept in ``DIR/log.txt``. :func:`run_suites` runs suites one after another, each in a fresh process (Dr.Jit's
+kernel cache and memory do not leak from one into the next), then writes the report
+(:mod:`torchir.bench.report`).
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+SUITES: dict[str, str] = {  # suite -> module with main(argv)
+    "overhead": "torchir.bench.overhead",
+    "adaptive": "torchir.bench.adaptive",
+    "denoiser": "torchir.bench.denoiser",
+    "loi": "torchir.bench.loi",
+    "restir": "torchir.bench.restir",
+}
+ALL = tuple(SUITES)
+
+
+def run_suites(suites: Sequence[str], quick: bool, out: Path) -> list[dict]:
+    """Run ``suites`` (``"all"`` expands to every suite) and write the report into ``out``."""
+    from .report import write_report
+
+    names = list(ALL) if list(suites) == ["all"] else list(suites)
+    unknown = [n for n in names if n not in SUITES]
+    if unknown:
+        raise ValueError(f"unknown bench suite(s) {unknown}; choose from {', '.join(SUITES)} or all")
+    out.mkdir(parents=True, exist_ok=True)
+    runs = []
+    for name in names:
+        folder = out / name
+        command = [sys.executable, "-m", SUITES[name], "--out", str(folder), *(["--quick"] if quick else [])]
+        print(f"[torchir bench] {name}: {' '.join(command)}", flush=True)
+        started = time.perf_counter()
+        folder.mkdir(parents=True, exist_ok=True)
+        with open(folder / "log.txt", "w") as log:
+            process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+            for line in process.stdout:  # progress stays visible, and the log keeps the tables
+                print(line, end="", flush=True)
+                log.write(line)
+            code = process.wait()
+        seconds = time.perf_counter() - started
+        print(f"[torchir bench] {name}: exit {code} after {seconds:.0f} s", flush=True)
+        runs.append({"suite": name, "folder": folder, "exit_code": code, "seconds": seconds, "quick": quick})
+    report = write_report(out, runs)
+    print(f"[torchir bench] report: {report} (and {report.with_suffix('.html')})")
+    return runs

@@ -1,0 +1,135 @@
+"""Light samples, reservoirs and the target function of ReSTIR direct illumination (paper 004).
+
+A light sample ``y`` lives in the *light-vertex measure* (spec §6.2): the emitter index, the
+position, normal and uv on it, and whether it is a delta light. Re-evaluated at any shading
+point ``x`` it gives (R24)
+
+    f(y; x) = Le(y -> x) * fs(x, w) * g(y, x) * V(x, y),   g = 1 (delta) or |n_y . w| / dist^2
+
+and the target p̂(y; x) = lum(f) (R14). Candidates come from standard emitter sampling with
+``p_c = pdf_sel * pdf_dir * (delta ? 1 : g)``, so ``p̂ / p_c = lum(NEE weight * fs * V)`` (R25),
+and a reservoir's ``W`` is in area (or counting) measure, valid at every shading point.
+
+The Dr.Jit struct types are built lazily (they need the Mitsuba variant).
+"""
+from __future__ import annotations
+
+import functools
+
+import drjit as dr
+import mitsuba as mi
+
+
+@functools.cache
+def _types(variant: str):
+    class LightSample:
+        """One light vertex (spec D8)."""
+
+        DRJIT_STRUCT = {"em": mi.UInt32, "p": mi.Point3f, "n": mi.Vector3f, "uv": mi.Point2f, "delta": mi.Bool}
+
+    class Reservoirs:
+        """One reservoir per camera sample (spec §6.4), keyed by its shading point.
+
+        The shading point is stored as (shape index, primitive, primitive uv) plus its camera
+        ray (``o``, ``d``, ``t``), so it can be rebuilt after parameters change (T-U6); ``p``
+        and ``n`` are the position and shading normal used for the neighbour search.
+        """
+
+        DRJIT_STRUCT = {
+            "y": LightSample,
+            "W": mi.Float,
+            "M": mi.Float,
+            "w_sum": mi.Float,
+            "shape": mi.UInt32,
+            "prim": mi.UInt32,
+            "prim_uv": mi.Point2f,
+            "o": mi.Point3f,
+            "d": mi.Vector3f,
+            "t": mi.Float,
+            "p": mi.Point3f,
+            "n": mi.Vector3f,
+            "valid": mi.Bool,
+        }
+
+    return LightSample, Reservoirs
+
+
+def LightSample():  # noqa: N802 - a type accessor
+    return _types(mi.variant())[0]
+
+
+def Reservoirs():  # noqa: N802
+    return _types(mi.variant())[1]
+
+
+def shape_pointers(scene: mi.Scene, index: mi.UInt32, active: mi.Bool) -> mi.ShapePtr:
+    return dr.gather(mi.ShapePtr, scene.shapes_dr(), index, active)
+
+
+def rebuild_interaction(scene: mi.Scene, r, active: mi.Bool) -> mi.SurfaceInteraction3f:
+    """Rebuild the shading points of reservoirs ``r`` from (shape, prim, prim_uv) and their
+    camera ray: meshes interpolate the *current* vertices with the stored barycentrics."""
+    n = dr.width(r.t)
+    active = mi.Bool(active) & r.valid
+    pi = dr.zeros(mi.PreliminaryIntersection3f, n)
+    pi.valid = active
+    pi.t = r.t
+    pi.shape = shape_pointers(scene, r.shape, active)
+    pi.prim_index = r.prim
+    pi.prim_uv = r.prim_uv
+    pi.shape_index = r.shape
+    return pi.compute_surface_interaction(mi.Ray3f(r.o, r.d), mi.RayFlags.All, active)
+
+
+def eval_target(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool, visibility: bool = True):
+    """``(f, p̂)`` of light samples ``y`` at shading points ``si`` (R24, R14).
+
+    ``f`` is the RGB contribution ``Le * fs * g * V`` (differentiable through Le and fs when
+    called under ``dr.resume_grad``); ``p̂ = lum(f)``. Zero (never NaN) where inactive, on the
+    light, or behind a one-sided emitter. ``visibility=False`` skips the shadow ray.
+    """
+    active = mi.Bool(active) & si.is_valid()
+    n = dr.width(active)
+    to_y = y.p - si.p
+    dist = dr.norm(to_y)
+    active &= dist > 0
+    d = to_y / dr.select(active, dist, 1.0)
+    ds = dr.zeros(mi.DirectionSample3f, n)
+    ds.p, ds.n, ds.uv, ds.delta = y.p, y.n, y.uv, y.delta
+    ds.time = si.time
+    ds.d, ds.dist = d, dist
+    ds.pdf = dr.zeros(mi.Float, n)
+    ds.emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), y.em, active)
+    le = scene.eval_emitter_direction(si, ds, active)
+    g = dr.select(y.delta, 1.0, dr.abs(dr.dot(y.n, d)) / dr.select(active, dist * dist, 1.0))
+    bsdf = si.bsdf()
+    fs = bsdf.eval(mi.BSDFContext(), si, si.to_local(d), active)  # cosine included
+    f = le * fs * g
+    active &= dr.isfinite(mi.luminance(f)) & (mi.luminance(f) > 0)
+    if visibility:
+        active &= ~scene.ray_test(si.spawn_ray_to(y.p), active)
+    f = dr.select(active, f, 0.0)
+    return f, dr.select(active, mi.luminance(f), 0.0)
+
+
+def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Sampler, active: mi.Bool):
+    """One light candidate (R15): emitter by ``sampling_weight``, then the emitter's own
+    sampling. Returns ``(y, f, p̂, w)`` with ``w = p̂ / p_c`` (R4, R25)."""
+    active = mi.Bool(active)  # the &= below must not modify the caller's mask
+    n = dr.width(active)
+    u = sampler.next_2d(active)
+    idx, sel_weight, u_x = scene.sample_emitter(u.x, active)
+    em = dr.gather(mi.EmitterPtr, scene.emitters_dr(), idx, active)
+    ds, weight = em.sample_direction(si, mi.Point2f(u_x, u.y), active)  # weight = Le / pdf_dir
+    active &= ds.pdf > 0
+    wo = si.to_local(ds.d)
+    fs = si.bsdf().eval(mi.BSDFContext(), si, wo, active)
+    g = dr.select(ds.delta, 1.0, dr.abs(dr.dot(ds.n, ds.d)) / dr.select(active, ds.dist * ds.dist, 1.0))
+    f = weight * ds.pdf * fs * dr.select(ds.delta, 1.0, g)  # = Le fs g
+    nee = weight * sel_weight * fs  # = f / p_c
+    active &= dr.isfinite(mi.luminance(nee)) & (mi.luminance(f) > 0)
+    active &= ~scene.ray_test(si.spawn_ray_to(ds.p), active)
+    y = dr.zeros(LightSample(), n)
+    y.em, y.p, y.n, y.uv, y.delta = idx, ds.p, mi.Vector3f(ds.n), ds.uv, ds.delta
+    f = dr.select(active, f, 0.0)
+    return y, f, dr.select(active, mi.luminance(f), 0.0), dr.select(active, mi.luminance(nee), 0.0)

@@ -1,0 +1,617 @@
+"""Locally orderless images (LOI) loss: Wasserstein-1 between local intensity histograms.
+
+Paper 003 (Mehta, Chandraker, Ramamoorthi, "Locally Orderless Images for Optimization in
+Differentiable Rendering"); equation labels E0-E11 and choices A1-A12 refer to
+``spec/loi-loss.md``. Every pixel becomes a local histogram of intensities: blur the image by
+the inner scale ``sigma`` (paper Eq. 1-2), spread each value into a Gaussian over intensity of
+width ``beta`` (Eq. 3), and average these over a spatial window of extent ``alpha`` (Eq. 4).
+The loss is the 1-D Wasserstein-1 distance of rendered and reference local histograms per
+pixel and channel, i.e. the L1 distance of their CDFs (Eq. 5, p = 1), summed over the
+``sigma x alpha`` grid. Because a histogram keeps *which* intensities are nearby (not their
+mean), a feature far from its target still gets a gradient towards the place where its own
+intensity level is missing: the renderer's sparse RGB gradients reach much further.
+
+The histogram is never materialised: with soft bins by the normal CDF ``Phi`` (E4), the local
+CDF at bin edge ``e_j`` is ``A_alpha * Phi((e_j - J_sigma) / beta)`` (E6), and since the blur
+is linear, one blur of the *difference* of the two images' point CDFs per scale suffices (E11).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from collections import OrderedDict
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any, Union
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ._blur import MIN_SCALE, blur, blur_adjoint
+
+__all__ = ["loi_loss", "LOILoss", "LOI_PRESETS", "TRANSFORMS"]
+
+_REDUCTIONS = ("mean", "sum", "none")
+_BORDERS = ("pad", "renormalize")
+_CHANNELS = ("independent", "luminance")
+_LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709, linear RGB
+_SMALL_BETA = 1.0 / 128  # below: many bins, gradient only within 3 beta of each value (spec 5.5)
+_OUT_OF_RANGE_FRACTION = 0.01  # warn when more pixels than this lie beyond k_hi + 3 beta
+
+
+def _reinhard(x: torch.Tensor) -> torch.Tensor:
+    return x / (1 + x.abs())  # x / (1 + x) for radiance, odd-symmetric so negatives stay finite
+
+
+def _log1p(x: torch.Tensor) -> torch.Tensor:
+    return torch.sign(x) * torch.log1p(x.abs())
+
+
+TRANSFORMS: dict[str, Callable[[torch.Tensor], torch.Tensor] | None] = {
+    "identity": None,
+    "clamp": None,  # clamps to value_range (resolved at call time)
+    "reinhard": _reinhard,
+    "log1p": _log1p,
+}
+
+# The paper's three settings (spec section 3); A11: the raster preset follows Table 3's caption.
+LOI_PRESETS: dict[str, dict[str, Any]] = {
+    "disks": dict(alphas=(1, 5, 15), sigmas=(1, 5, 15, 45), beta=0.125),  # section 4.1, Table 1
+    "pathtracing": dict(alphas=(1, 5, 15, 45), sigmas=(1, 5), beta=0.125),  # section 4.2, Table 2
+    "raster": dict(alphas=(1, 5, 15, 45), sigmas=(0, 5), beta=0.03125),  # section 4.4, Table 3
+}
+
+Transform = Union[str, Callable[[torch.Tensor], torch.Tensor], None]
+
+
+# ------------------------------------------------------------------------------ configuration
+@dataclass(frozen=True)
+class _Config:
+    alphas: tuple[float, ...]
+    sigmas: tuple[float, ...]
+    beta: float
+    value_range: tuple[float, float]
+    tail: int
+    transform: Transform
+    channels: str
+    border: str
+    pad_frac: float
+    weights: tuple[tuple[float, ...], ...]  # (len(sigmas), len(alphas))
+    relative: bool
+    truncate: float
+    reduction: str
+    low_memory: bool
+
+    @property
+    def n_terms(self) -> int:
+        return len(self.sigmas) * len(self.alphas)
+
+
+def _scales(name: str, values: Sequence[float] | float) -> tuple[float, ...]:
+    if isinstance(values, (int, float)) and not isinstance(values, bool):
+        values = (values,)
+    try:
+        out = tuple(float(v) for v in values)
+    except TypeError:
+        raise TypeError(f"{name} must be a sequence of numbers, got {values!r}") from None
+    if not out:
+        raise ValueError(f"{name} must not be empty")
+    if any(not math.isfinite(v) or v < 0 for v in out):
+        raise ValueError(f"{name} must be finite and >= 0, got {out}")
+    return tuple(0.0 if v < MIN_SCALE else v for v in out)
+
+
+def _weights(weights: Any, n_sigmas: int, n_alphas: int) -> tuple[tuple[float, ...], ...]:
+    if weights is None:
+        return tuple((1.0,) * n_alphas for _ in range(n_sigmas))
+    rows = torch.as_tensor(weights, dtype=torch.float64)
+    if tuple(rows.shape) != (n_sigmas, n_alphas):
+        raise ValueError(f"weights must have shape (len(sigmas), len(alphas)) = {(n_sigmas, n_alphas)}, got {tuple(rows.shape)}")
+    if not bool(torch.isfinite(rows).all()) or bool((rows < 0).any()):
+        raise ValueError("weights must be finite and >= 0")
+    return tuple(tuple(float(w) for w in row) for row in rows)
+
+
+def _config(
+    alphas, sigmas, beta, value_range, tail, transform, channels, border, pad_frac, weights, relative, truncate, reduction, low_memory
+) -> _Config:
+    alphas, sigmas = _scales("alphas", alphas), _scales("sigmas", sigmas)
+    beta = float(beta)
+    if not math.isfinite(beta) or beta <= 0:
+        raise ValueError(f"beta must be > 0, got {beta}")
+    if beta < _SMALL_BETA:
+        warnings.warn(
+            f"beta={beta:g} < 1/128: many bins (memory grows with 1/beta) and a pixel only gets a "
+            f"gradient where the histograms differ within ~3 beta of its own value",
+            stacklevel=3,
+        )
+    lo, hi = (float(v) for v in value_range)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ValueError(f"value_range must be finite (lo, hi) with lo < hi, got {value_range!r}")
+    if isinstance(tail, bool) or not isinstance(tail, int) or tail < 0:
+        raise ValueError(f"tail must be an int >= 0, got {tail!r}")
+    if isinstance(transform, str) and transform not in TRANSFORMS:
+        raise ValueError(f"transform must be one of {sorted(TRANSFORMS)} or a callable, got {transform!r}")
+    if transform is not None and not isinstance(transform, str) and not callable(transform):
+        raise TypeError(f"transform must be a name or a callable, got {type(transform).__name__}")
+    if channels not in _CHANNELS:
+        raise ValueError(f"channels must be one of {_CHANNELS}, got {channels!r}")
+    if border not in _BORDERS:
+        raise ValueError(f"border must be one of {_BORDERS}, got {border!r}")
+    if not 0 <= float(pad_frac) <= 4:
+        raise ValueError(f"pad_frac must be in [0, 4], got {pad_frac}")
+    if not float(truncate) > 0:
+        raise ValueError(f"truncate must be > 0, got {truncate}")
+    if reduction not in _REDUCTIONS:
+        raise ValueError(f"reduction must be one of {_REDUCTIONS}, got {reduction!r}")
+    return _Config(
+        alphas=alphas,
+        sigmas=sigmas,
+        beta=beta,
+        value_range=(lo, hi),
+        tail=tail,
+        transform=transform,
+        channels=channels,
+        border=border,
+        pad_frac=float(pad_frac),
+        weights=_weights(weights, len(sigmas), len(alphas)),
+        relative=bool(relative),
+        truncate=float(truncate),
+        reduction=reduction,
+        low_memory=bool(low_memory),
+    )
+
+
+# ------------------------------------------------------------------------------ input checks
+def _as_batch(name: str, x: Any) -> torch.Tensor:
+    """``(B, C, H, W)`` float view of an image argument, with layout/dtype/finiteness checks."""
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.dim() not in (3, 4):
+        raise ValueError(f"{name} must be (C, H, W) or (B, C, H, W), got shape {tuple(x.shape)}")
+    if x.shape[-1] in (3, 4) and x.shape[-3] > 4:
+        raise ValueError(
+            f"{name} has shape {tuple(x.shape)}, which looks like Mitsuba's (H, W, C) layout; "
+            f"torchir images are (C, H, W): use img.permute(2, 0, 1) (and drop an alpha channel)"
+        )
+    if not x.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point image, got {x.dtype}")
+    if x.numel() == 0:
+        raise ValueError(f"{name} is empty (shape {tuple(x.shape)})")
+    if not bool(torch.isfinite(x.detach()).all()):
+        bad = int((~torch.isfinite(x.detach())).sum())
+        raise ValueError(f"{name} has {bad} non-finite (NaN/Inf) values")
+    x = x if x.dim() == 4 else x.unsqueeze(0)
+    return x if x.dtype in (torch.float32, torch.float64) else x.float()
+
+
+def _check_mask(mask: Any, like: torch.Tensor) -> torch.Tensor:
+    if not isinstance(mask, torch.Tensor):
+        raise TypeError(f"mask must be a torch.Tensor, got {type(mask).__name__}")
+    mask = mask if mask.dim() == 4 else mask.unsqueeze(0) if mask.dim() == 3 else mask
+    b, c, h, w = like.shape
+    if mask.dim() != 4 or mask.shape[0] not in (1, b) or mask.shape[1] not in (1, c) or tuple(mask.shape[2:]) != (h, w):
+        raise ValueError(f"mask must be (B, 1, H, W) or (B, C, H, W) for images {tuple(like.shape)}, got {tuple(mask.shape)}")
+    mask = mask.detach().to(like.dtype)
+    if not bool(torch.isfinite(mask).all()) or bool((mask < 0).any()):
+        raise ValueError("mask must be finite and >= 0")
+    mask = mask.expand(b, -1, -1, -1)
+    if bool((mask.flatten(1).sum(1) == 0).any()):
+        raise ValueError("mask is zero everywhere for some batch item: nothing to compare")
+    return mask
+
+
+# ------------------------------------------------------------------------------ the pipeline
+def _transform(x: torch.Tensor, cfg: _Config) -> torch.Tensor:
+    """E0: luminance (optional) and the intensity transform tau."""
+    if cfg.channels == "luminance":
+        if x.shape[1] != 3:
+            raise ValueError(f"channels='luminance' needs 3 channels, got {x.shape[1]}")
+        x = (x * x.new_tensor(_LUMINANCE).view(1, 3, 1, 1)).sum(1, keepdim=True)
+    t = cfg.transform
+    if t is None or t == "identity":
+        return x
+    if t == "clamp":
+        return x.clamp(*cfg.value_range)
+    return (TRANSFORMS[t] if isinstance(t, str) else t)(x)
+
+
+def _warn_out_of_range(name: str, j: torch.Tensor, cfg: _Config, warned: set[str] | None) -> None:
+    if warned is not None and name in warned:
+        return
+    lo, hi = cfg.value_range
+    reach = 3 * cfg.beta
+    with torch.no_grad():
+        outside = float(((j < lo - reach) | (j > hi + reach)).float().mean())
+    if outside > _OUT_OF_RANGE_FRACTION:
+        if warned is not None:
+            warned.add(name)
+        warnings.warn(
+            f"LOI loss: {100 * outside:.1f}% of {name}'s values lie beyond value_range {cfg.value_range} "
+            f"+- 3 beta, where histograms saturate and differences become invisible; use "
+            f"transform='reinhard' (HDR renders) or a wider value_range",
+            stacklevel=4,
+        )
+
+
+def _margin(h: int, w: int, cfg: _Config) -> int:
+    return math.ceil(cfg.pad_frac * max(h, w)) if cfg.border == "pad" else 0
+
+
+def _pad(x: torch.Tensor, m: int, value: float) -> torch.Tensor:
+    # spec 5.4: a constant margin, identical in both images, keeps the gradient's sign right
+    # near the frame, where renormalised borders flip it
+    return F.pad(x, (m, m, m, m), value=value) if m else x
+
+
+def _pixel_scales(cfg: _Config, h: int, w: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Scales in pixels (A2: ``relative`` scales are fractions of ``min(H, W)``)."""
+    f = float(min(h, w)) if cfg.relative else 1.0
+    fix = lambda s: 0.0 if s * f < MIN_SCALE else s * f  # noqa: E731
+    return tuple(fix(s) for s in cfg.sigmas), tuple(fix(a) for a in cfg.alphas)
+
+
+def _edges(cfg: _Config, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """E3: ``K = N + 2T + 1`` bin edges ``lo + j beta``, ``j = -T .. N + T``."""
+    lo, hi = cfg.value_range
+    n = max(1, round((hi - lo) / cfg.beta))
+    j = torch.arange(-cfg.tail, n + cfg.tail + 1, dtype=torch.float64)
+    return (lo + j * cfg.beta).to(dtype=dtype, device=device)
+
+
+def _point_cdf(j_sigma: torch.Tensor, edges: torch.Tensor, beta: float) -> torch.Tensor:
+    """E4/E6 before the aperture: ``Phi((e_j - J_sigma(x)) / beta)``, ``(B, C, K, H, W)``."""
+    return torch.special.ndtr((edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)) / beta)
+
+
+def _pixel_weights(b: int, h: int, w: int, m: int, mask: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+    """Per-pixel weights of E7 on the (padded) canvas, ``(B, 1|C, Hp, Wp)``.
+
+    A10: the loss is a mean over the image's pixels; the margin of ``border="pad"`` is summed
+    with the same weight (normalised by the *unpadded* pixel count, so values are comparable
+    with ``border="renormalize"``). A mask weights image pixels (normalised by its sum); the
+    margin keeps weight 1."""
+    if mask is None:
+        return like.new_full((b, 1, h + 2 * m, w + 2 * m), 1.0 / (h * w))
+    norm = mask.mean(1, keepdim=True).flatten(1).sum(1).view(b, 1, 1, 1)
+    return _pad(mask, m, 1.0) / norm
+
+
+def _scale_terms(d: torch.Tensor, alphas: Sequence[float], beta: float, pw: torch.Tensor, truncate: float) -> list[torch.Tensor]:
+    """E7 for each alpha: ``[(B,)]``, from ``d = Phi' - Phi^gt`` (E11: one blur per scale)."""
+    c = d.shape[1]
+    out = []
+    for a in alphas:
+        w1 = blur(d, a, truncate).abs().sum(2) * beta  # (B, C, Hp, Wp): W1 per pixel and channel
+        out.append((w1 * pw).flatten(1).sum(1) / c)
+    return out
+
+
+class _LowMemorySigmaTerm(torch.autograd.Function):
+    """``sum_alpha w_alpha E(sigma, alpha)`` that stores only ``J_sigma'`` and recomputes the
+    point CDFs and blurs in backward (E10): memory ~5 big tensors instead of ~(3 + |A|)."""
+
+    @staticmethod
+    def forward(ctx, j_sigma, z_target, edges, beta, alphas, weights, pw, truncate):  # noqa: D102
+        d = _point_cdf(j_sigma, edges, beta) - z_target
+        terms = _scale_terms(d, alphas, beta, pw, truncate)
+        ctx.save_for_backward(j_sigma, z_target, edges, pw)
+        ctx.beta, ctx.alphas, ctx.weights, ctx.truncate = beta, alphas, weights, truncate
+        return sum(w * t for w, t in zip(weights, terms))
+
+    @staticmethod
+    def backward(ctx, grad):  # noqa: D102
+        j_sigma, z_target, edges, pw = ctx.saved_tensors
+        beta = ctx.beta
+        z = (edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)) / beta
+        d = torch.special.ndtr(z) - z_target
+        c = d.shape[1]
+        scale = (grad.view(-1, 1, 1, 1) * pw / c * beta).unsqueeze(2)  # (B, 1|C, 1, Hp, Wp)
+        grad_d = torch.zeros_like(d)
+        for a, w in zip(ctx.alphas, ctx.weights):
+            if w:
+                grad_d += blur_adjoint(torch.sign(blur(d, a, ctx.truncate)) * (w * scale), a, ctx.truncate)
+        phi = torch.exp(-0.5 * z * z) * (1.0 / math.sqrt(2 * math.pi))
+        grad_j = -(phi * grad_d).sum(2) / beta  # d Phi((e - J)/beta) / dJ = -phi / beta
+        return grad_j, None, None, None, None, None, None, None
+
+
+@dataclass
+class _Prepared:
+    rendered: torch.Tensor  # transformed, padded (B, C', Hp, Wp)
+    target: torch.Tensor
+    pw: torch.Tensor
+    edges: torch.Tensor
+    sigmas: tuple[float, ...]  # in pixels
+    alphas: tuple[float, ...]
+    shape: tuple[int, int, int, int]  # of the unpadded (transformed) images
+    margin: int
+
+
+def _prepare_one(name: str, x: torch.Tensor, cfg: _Config, warned: set[str] | None) -> torch.Tensor:
+    j = _transform(x, cfg)
+    _warn_out_of_range(name, j, cfg, warned)
+    return j
+
+
+def _prepare(rendered: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None, cfg: _Config, warned: set[str] | None = None) -> _Prepared:
+    r, t = _as_batch("rendered", rendered), _as_batch("target", target)
+    if r.shape != t.shape:
+        raise ValueError(f"rendered and target shapes differ: {tuple(r.shape)} vs {tuple(t.shape)}")
+    dtype = torch.promote_types(r.dtype, t.dtype)
+    r, t = r.to(dtype), t.detach().to(dtype)
+    if mask is not None:
+        mask = _check_mask(mask, r)
+    jr, jt = _prepare_one("rendered", r, cfg, warned), _prepare_one("target", t, cfg, warned)
+    b, c, h, w = jr.shape
+    if mask is not None and mask.shape[1] not in (1, c):
+        raise ValueError(f"mask has {mask.shape[1]} channels but the compared images have {c}")
+    m = _margin(h, w, cfg)
+    lo = cfg.value_range[0]
+    sigmas, alphas = _pixel_scales(cfg, h, w)
+    return _Prepared(
+        rendered=_pad(jr, m, lo),
+        target=_pad(jt, m, lo),
+        pw=_pixel_weights(b, h, w, m, mask, jr),
+        edges=_edges(cfg, dtype, jr.device),
+        sigmas=sigmas,
+        alphas=alphas,
+        shape=(b, c, h, w),
+        margin=m,
+    )
+
+
+def _target_cdfs(p: _Prepared, cfg: _Config) -> list[torch.Tensor]:
+    return [_point_cdf(blur(p.target, s, cfg.truncate), p.edges, cfg.beta) for s in p.sigmas]
+
+
+def _per_image(p: _Prepared, cfg: _Config, z_targets: list[torch.Tensor]) -> torch.Tensor:
+    """E8: ``sum_{sigma, alpha} w E(sigma, alpha)`` per batch item, ``(B,)``."""
+    total = p.rendered.new_zeros(p.shape[0])
+    for s, zt, w_row in zip(p.sigmas, z_targets, cfg.weights):
+        j_sigma = blur(p.rendered, s, cfg.truncate)  # E1
+        if cfg.low_memory and torch.is_grad_enabled() and j_sigma.requires_grad:
+            alphas = tuple(a for a, w in zip(p.alphas, w_row) if w)
+            weights = tuple(w for w in w_row if w)
+            total = total + _LowMemorySigmaTerm.apply(j_sigma, zt, p.edges, cfg.beta, alphas, weights, p.pw, cfg.truncate)
+        else:
+            d = _point_cdf(j_sigma, p.edges, cfg.beta) - zt  # E11
+            terms = _scale_terms(d, [a for a, w in zip(p.alphas, w_row) if w], cfg.beta, p.pw, cfg.truncate)
+            total = total + sum(w * t for w, t in zip((w for w in w_row if w), terms))
+    return total
+
+
+def _reduce(x: torch.Tensor, reduction: str) -> torch.Tensor:
+    return x.mean() if reduction == "mean" else x.sum() if reduction == "sum" else x
+
+
+def loi_loss(
+    rendered: torch.Tensor,
+    target: torch.Tensor,
+    alphas: Sequence[float] = (1, 5, 15, 45),
+    sigmas: Sequence[float] = (1, 5),
+    beta: float = 0.125,
+    value_range: tuple[float, float] = (0.0, 1.0),
+    tail: int = 3,
+    transform: Transform = None,
+    channels: str = "independent",
+    border: str = "pad",
+    pad_frac: float = 0.25,
+    weights: Sequence[Sequence[float]] | None = None,
+    relative: bool = False,
+    truncate: float = 3.0,
+    reduction: str = "mean",
+    mask: torch.Tensor | None = None,
+    low_memory: bool = False,
+) -> torch.Tensor:
+    r"""Locally orderless images loss (paper 003, Eq. 1-5): W1 between local histograms.
+
+    .. math::
+        E = \sum_{\sigma, \alpha} w_{\sigma\alpha} \frac{1}{C |\Omega|} \sum_{c, x} \beta \sum_j
+            \big| A_\alpha * (\Phi(\tfrac{e_j - J'_\sigma}{\beta}) - \Phi(\tfrac{e_j - J^{gt}_\sigma}{\beta})) \big|(x)
+
+    Args:
+        rendered: the rendered image (gradients flow to it).
+        target: the reference image (treated as constant).
+        alphas: extent scales (aperture std-devs in pixels; 0 = none), paper Eq. 4.
+        sigmas: inner scales (image blur std-devs in pixels; 0 = none), paper Eq. 1.
+        beta: tonal scale = bin width, paper Eq. 3.
+        value_range: ``(k_lo, k_hi)`` of the histogram bins.
+        tail: extra bins on each side of the range (0 = paper-literal ``k in [0, 1]``).
+        transform: intensity map applied to both images first: ``None``/``"identity"``,
+            ``"clamp"`` (to ``value_range``), ``"reinhard"`` (``x/(1+x)``, for HDR renders),
+            ``"log1p"``, or a callable.
+        channels: ``"independent"`` (per-channel marginals, averaged) or ``"luminance"``.
+        border: ``"pad"`` (a constant margin of ``pad_frac * max(H, W)`` pixels around both
+            images; spec 5.4) or ``"renormalize"`` (border-renormalised blurs only).
+        weights: ``(len(sigmas), len(alphas))`` per-term weights (default all 1).
+        relative: scales are fractions of ``min(H, W)`` instead of pixels.
+        truncate: Gaussian kernels are cut at ``truncate`` std-devs (capped at the image size).
+        reduction: ``"mean"`` / ``"sum"`` over the batch, or ``"none"`` for ``(B,)``.
+        mask: ``(B, 1|C, H, W)`` non-negative per-pixel weights of the W1 terms.
+        low_memory: recompute the big tensors in backward instead of storing them.
+
+    Returns:
+        A scalar (``(B,)`` for ``reduction="none"``). Each term is a mean over channels and
+        pixels, so identical images give 0 and constant images ``a, b`` (in range) give
+        ``len(sigmas) * len(alphas) * |a - b|``.
+
+    Shape:
+        rendered, target: ``(B, C, H, W)`` or ``(C, H, W)``, same shape.
+
+    Example:
+        >>> x, y = torch.rand(1, 3, 32, 32, requires_grad=True), torch.rand(1, 3, 32, 32)
+        >>> loi_loss(x, y, alphas=(1, 5), sigmas=(1,)).backward()
+    """
+    cfg = _config(alphas, sigmas, beta, value_range, tail, transform, channels, border, pad_frac, weights, relative, truncate, reduction, low_memory)
+    p = _prepare(rendered, target, mask, cfg)
+    return _reduce(_per_image(p, cfg, _target_cdfs(p, cfg)), cfg.reduction)
+
+
+class LOILoss(nn.Module):
+    """Module twin of :func:`loi_loss`, with target-side caching, presets and inspection.
+
+    The reference's point CDFs (one ``(B, C, K, H, W)`` tensor per inner scale) are cached
+    for the last ``cache_target`` distinct targets (``True`` = 1, ``False``/0 = off), keyed on
+    the tensor (same object and version, or equal content), so a fixed reference is processed
+    once per run.
+
+    Args:
+        See :func:`loi_loss`; ``cache_target`` as above.
+
+    Example:
+        >>> loss_fn = LOILoss.preset("pathtracing", transform="reinhard")
+        >>> loss = loss_fn(rendered, target)          # (B, C, H, W) each -> scalar
+        >>> loss_fn.terms(rendered, target)           # {(sigma, alpha): value}
+    """
+
+    pixelwise = False  # local histograms couple pixels: not usable with pixel sampling
+
+    def __init__(
+        self,
+        alphas: Sequence[float] = (1, 5, 15, 45),
+        sigmas: Sequence[float] = (1, 5),
+        beta: float = 0.125,
+        value_range: tuple[float, float] = (0.0, 1.0),
+        tail: int = 3,
+        transform: Transform = None,
+        channels: str = "independent",
+        border: str = "pad",
+        pad_frac: float = 0.25,
+        weights: Sequence[Sequence[float]] | None = None,
+        relative: bool = False,
+        truncate: float = 3.0,
+        reduction: str = "mean",
+        cache_target: bool | int = True,
+        low_memory: bool = False,
+    ) -> None:
+        super().__init__()
+        self.cfg = _config(alphas, sigmas, beta, value_range, tail, transform, channels, border, pad_frac, weights, relative, truncate, reduction, low_memory)
+        if isinstance(cache_target, bool):
+            cache_target = int(cache_target)
+        if not isinstance(cache_target, int) or cache_target < 0:
+            raise ValueError(f"cache_target must be a bool or an int >= 0, got {cache_target!r}")
+        self.cache_size = cache_target
+        self._cache: OrderedDict[int, tuple[torch.Tensor, int, tuple, torch.Tensor, list[torch.Tensor]]] = OrderedDict()
+        self._warned: set[str] = set()  # out-of-range warnings already given (once per image role)
+        self.cache_hits = 0
+        self._memory_warned = False
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> LOILoss:
+        """The paper's settings: ``"disks"`` (section 4.1), ``"pathtracing"`` (4.2, the default
+        scales) or ``"raster"`` (4.4); keyword arguments override single options."""
+        if name not in LOI_PRESETS:
+            raise ValueError(f"unknown LOI preset {name!r}; choose from {sorted(LOI_PRESETS)}")
+        return cls(**{**LOI_PRESETS[name], **overrides})
+
+    # ------------------------------------------------------------------------ options
+    def __getattr__(self, name: str) -> Any:
+        cfg = self.__dict__.get("cfg")
+        if cfg is not None and name in cfg.__dataclass_fields__:
+            return getattr(cfg, name)
+        return super().__getattr__(name)
+
+    @property
+    def n_terms(self) -> int:
+        return self.cfg.n_terms
+
+    def set_scales(self, alphas: Sequence[float] | None = None, sigmas: Sequence[float] | None = None, weights: Any = None) -> None:
+        """Change the scale grid (a hook for schedules); clears the target cache."""
+        alphas = self.cfg.alphas if alphas is None else _scales("alphas", alphas)
+        sigmas = self.cfg.sigmas if sigmas is None else _scales("sigmas", sigmas)
+        self.cfg = replace(self.cfg, alphas=alphas, sigmas=sigmas, weights=_weights(weights, len(sigmas), len(alphas)))
+        self.clear_cache()
+
+    def clear_cache(self) -> None:
+        self._cache.clear()
+
+    def extra_repr(self) -> str:
+        c = self.cfg
+        return (
+            f"alphas={c.alphas}, sigmas={c.sigmas}, beta={c.beta}, value_range={c.value_range}, tail={c.tail}, "
+            f"transform={c.transform!r}, border={c.border!r}, relative={c.relative}, reduction={c.reduction!r}, "
+            f"low_memory={c.low_memory}"
+        )
+
+    # ------------------------------------------------------------------------ forward
+    def _target_cdfs(self, target: torch.Tensor, p: _Prepared) -> list[torch.Tensor]:
+        if self.cache_size == 0:
+            return _target_cdfs(p, self.cfg)
+        key = (tuple(p.target.shape), p.target.dtype, p.target.device, p.margin)
+        for k, (ref, version, ref_key, snapshot, z) in self._cache.items():
+            if ref_key != key or snapshot.shape != target.shape:
+                continue
+            if ref is target and ref._version == version:
+                hit = True  # the same, unmodified tensor: no comparison needed
+            else:  # e.g. a collated copy of the same reference; compare with the snapshot
+                hit = torch.equal(snapshot, target.detach())
+            if hit:
+                self._cache.move_to_end(k)
+                self.cache_hits += 1
+                return z
+        with torch.no_grad():
+            z = _target_cdfs(p, self.cfg)
+        # holding the tensor keeps its id unique while cached; the snapshot guards in-place edits
+        self._cache[id(target)] = (target, target._version, key, target.detach().clone(), z)
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        return z
+
+    def _warn_memory(self, p: _Prepared) -> None:
+        est = self.memory_estimate(p.shape, p.rendered.dtype)
+        if est > 2**31 and not self.cfg.low_memory and not self._memory_warned:
+            self._memory_warned = True
+            warnings.warn(f"LOI loss needs ~{est / 2**30:.1f} GiB for autograd at {p.shape}: consider low_memory=True", stacklevel=3)
+
+    def forward(self, rendered: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        p = _prepare(rendered, target, mask, self.cfg, self._warned)
+        self._warn_memory(p)
+        return _reduce(_per_image(p, self.cfg, self._target_cdfs(target, p)), self.cfg.reduction)
+
+    # ------------------------------------------------------------------------ inspection
+    def terms(self, rendered: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> dict[tuple[float, float], torch.Tensor]:
+        """Unweighted per-scale values ``{(sigma, alpha): E(sigma, alpha)}`` (batch mean,
+        detached), keyed by the configured (possibly relative) scales; for logging."""
+        with torch.no_grad():
+            p = _prepare(rendered, target, mask, self.cfg, self._warned)
+            out = {}
+            for s_cfg, s, zt in zip(self.cfg.sigmas, p.sigmas, _target_cdfs(p, self.cfg)):
+                d = _point_cdf(blur(p.rendered, s, self.cfg.truncate), p.edges, self.cfg.beta) - zt
+                for a_cfg, v in zip(self.cfg.alphas, _scale_terms(d, p.alphas, self.cfg.beta, p.pw, self.cfg.truncate)):
+                    out[(s_cfg, a_cfg)] = v.mean()
+            return out
+
+    def cdfs(self, img: torch.Tensor, sigma: float, alpha: float) -> torch.Tensor:
+        """Local CDFs at the bin edges (E6), ``(B, C, K, H, W)``, ``K = N + 2 tail + 1``
+        (computed with this loss's transform, border and scale units)."""
+        x = _as_batch("img", img)
+        j = _transform(x, self.cfg)
+        b, c, h, w = j.shape
+        m = _margin(h, w, self.cfg)
+        f = float(min(h, w)) if self.cfg.relative else 1.0
+        sigma, alpha = _scales("sigma", sigma)[0] * f, _scales("alpha", alpha)[0] * f
+        z = _point_cdf(blur(_pad(j, m, self.cfg.value_range[0]), sigma, self.cfg.truncate), _edges(self.cfg, j.dtype, j.device), self.cfg.beta)
+        z = blur(z, alpha, self.cfg.truncate)
+        return z[..., m : m + h, m : m + w] if m else z
+
+    def histograms(self, img: torch.Tensor, sigma: float, alpha: float) -> torch.Tensor:
+        """The locally orderless image (E5): local histograms ``(B, C, K + 1, H, W)`` whose
+        bins are ``(-inf, e_0), [e_0, e_1), ..., [e_{K-1}, inf)``; they sum to 1 per pixel."""
+        cdf = self.cdfs(img, sigma, alpha)
+        zero = torch.zeros_like(cdf[:, :, :1])
+        return torch.diff(cdf, dim=2, prepend=zero, append=torch.ones_like(zero))
+
+    def memory_estimate(self, shape: Sequence[int], dtype: torch.dtype = torch.float32) -> int:
+        """Approximate peak bytes of one forward + backward at image ``shape`` ((B,)C,H,W):
+        autograd keeps ~(3 + |alphas|) ``(B, C, K, Hp, Wp)`` tensors per sigma (low-memory
+        mode: ~5 in all), plus the cached target CDFs (one per sigma)."""
+        shape = tuple(shape) if len(shape) == 4 else (1, *shape)
+        b, c, h, w = shape
+        c = 1 if self.cfg.channels == "luminance" else c
+        m = _margin(h, w, self.cfg)
+        k = len(_edges(self.cfg, torch.float64, torch.device("cpu")))
+        big = b * c * k * (h + 2 * m) * (w + 2 * m) * torch.empty((), dtype=dtype).element_size()
+        n_s, n_a = len(self.cfg.sigmas), len(self.cfg.alphas)
+        return big * ((5 if self.cfg.low_memory else (3 + n_a) * n_s) + n_s)
