@@ -78,3 +78,16 @@ def test_loss_and_denoiser_by_name_with_options():
     assert InverseRenderingModule(scene="cbox", resolution=16, denoiser={"type": "none"}).denoiser is None
     with pytest.raises(ValueError, match="model.denoiser.type"):
         InverseRenderingModule(scene="cbox", resolution=16, denoiser={"type": "oidn"})
+
+
+def test_combined_restir_and_denoiser_train_and_incompatible_combinations_are_refused(tmp_path):
+    overrides = ["--model.sampler.burn_in", "2", "--trainer.max_steps", "2", "--checkpoint.every_n_train_steps", "0"]
+    assert cli.main(
+        ["fit", "--config", str(ROOT / "configs" / "combined_restir_target_aware.yaml"), "--model.resolution", "16",
+         "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false",
+         "--trainer.logger.init_args.save_dir", str(tmp_path), *overrides]
+    ) == 0
+    model = dict(yaml.safe_load((ROOT / "configs" / "combined_restir_target_aware.yaml").read_text())["model"])
+    model.update(resolution=16, sampler={"type": "adaptive", "budget": 8})
+    with pytest.raises(ValueError, match="denoiser needs full images"):
+        InverseRenderingModule(**model)

@@ -327,8 +327,11 @@ class PixelSampler:
 
     # -------------------------------------------------------------------- diagnostics
     def diagnostics(self) -> dict[str, float]:
-        """Scalars to log: predicted gain (E6), effective sample size fraction and largest
-        weight (relative to uniform) of the last batch, Stage-1 seconds and paths."""
+        """Scalars to log: predicted gain (E6: ``m sum a / (sum sqrt a)^2`` with ``a = p1 p2``
+        of the finest level; for the Eq. 5 sampler ``a = p1``, i.e. assuming equal derivative
+        moments everywhere, so it overstates that sampler's real gain), effective sample size
+        fraction and largest weight (relative to uniform) of the last batch, Stage-1 seconds
+        and paths."""
         return dict(self._stats)
 
     def state_dict(self) -> dict[str, Any]:

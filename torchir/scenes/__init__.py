@@ -7,7 +7,7 @@ reconstruction filter so pixel-subset renders define the same pixels as full ren
 Example:
     >>> import torchir
     >>> sorted(torchir.scenes.available())
-    ['cbox', 'glossy_ball', 'multiview', 'painting']
+    ['cbox', 'glossy_ball', 'glossy_highlight', 'multiview', 'oxalis_lite', 'painting', 'textured_wall']
 """
 from __future__ import annotations
 

@@ -254,10 +254,11 @@ class InverseRenderingModule(pl.LightningModule):
         else:
             guide = self.guide_buffers(views, step) if getattr(self.denoiser, "needs_guide", False) else None
             images = self.render_views(views, step)
+            # of the render itself: a target-aware denoiser's output is pulled towards the target
+            image_error = (images.detach() - targets).square().mean()
             if self.denoiser is not None:
                 images = self.denoise(images, targets, views, guide)
             loss = self.loss_fn(images, targets)
-            image_error = (images.detach() - targets).square().mean()
             h, w = self.scene.resolution
             paths = len(views) * h * w * (self.spp + self.spp_grad)
         if not bool(torch.isfinite(loss)):
