@@ -51,3 +51,15 @@ def test_report_falls_back_to_the_tables_a_suite_printed(tmp_path):
     (folder / "log.txt").write_text("progress 1/3\n## (a) variance\n| method | ratio |\n|---|---|\n| adaptive | 5.5x |\nwrote files\n")
     text = write_report(tmp_path, [{"suite": "printed", "folder": folder, "exit_code": 0, "seconds": 1.0, "quick": False}], extremes=False).read_text()
     assert "### (a) variance" in text and "| adaptive | 5.5x |" in text and "progress" not in text
+
+
+def test_soak_table_flags_growth_and_recompilation():
+    from torchir.bench.soak import table
+
+    ok = {"technique": "plain", "steps": 10, "seconds_per_step": 0.1, "kernels_per_step": 7.0, "rss_after_warmup_mb": 500.0,
+          "rss_final_mb": 501.0, "memory_growth": 0.002, "cache_misses_after_warmup": 0, "compiled_after_warmup": 0}
+    leaky = {**ok, "technique": "leaky", "rss_final_mb": 600.0, "memory_growth": 0.2}
+    recompiling = {**ok, "technique": "recompiling", "cache_misses_after_warmup": 3}
+    rows = table([ok, leaky, recompiling, {"technique": "broken", "error": "boom"}]).splitlines()[2:]
+    assert rows[0].endswith("| yes |") and rows[1].endswith("| NO |") and rows[2].endswith("| NO |")
+    assert "failed: boom" in rows[3]

@@ -21,6 +21,8 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "denoiser": "torchir.bench.denoiser",
     "loi": "torchir.bench.loi",
     "restir": "torchir.bench.restir",
+    "combined": "torchir.bench.combined",
+    "soak": "torchir.bench.soak",
 }
 ALL = tuple(SUITES)
 
