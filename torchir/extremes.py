@@ -103,6 +103,69 @@ def _nan_map() -> tuple:
     return p1, torch.rand(1, 8, 8)
 
 
+def _module(make: Callable[[], Any], inputs: Callable[[], tuple], backward: bool = True) -> Callable[[dict], Any]:
+    """Call an nn.Module on ``inputs()``; backpropagate the sum through the first input."""
+
+    def run(ctx: dict) -> Any:
+        args = inputs()
+        first = args[0].clone().requires_grad_()
+        out = make()(first, *args[1:])
+        if backward:
+            out.sum().backward()
+            return [out, first.grad]
+        return out
+
+    return run
+
+
+def _images(*shapes_and_fills: tuple) -> Callable[[], tuple]:
+    def make() -> tuple:
+        g = torch.Generator().manual_seed(0)
+        out = []
+        for shape, fill in shapes_and_fills:
+            x = torch.rand(shape, generator=g)
+            out.append(fill(x) if fill is not None else x)
+        return tuple(out)
+
+    return make
+
+
+def _firefly(x: torch.Tensor) -> torch.Tensor:
+    x = x.clone()
+    x[..., 3, 3] = 1e6
+    return x
+
+
+def _nan(x: torch.Tensor) -> torch.Tensor:
+    x = x.clone()
+    x[..., 0, 0] = math.nan
+    return x
+
+
+def _restir(light: float | None = None, albedo: float | None = None, **options: Any) -> Callable[[dict], Any]:
+    def run(ctx: dict) -> Any:
+        import torchir
+        from torchir.functions import render
+        from torchir.samplers import ReSTIRSampler
+
+        scene = ctx.get("restir_scene")
+        if scene is None:
+            scene = ctx["restir_scene"] = torchir.Scene.builtin("cbox", resolution=8, max_depth=2)
+        values: dict[str, torch.Tensor] = {RED: torch.full((3,), 0.5 if albedo is None else albedo, requires_grad=True)}
+        if light is not None:
+            values[LIGHT] = torch.full((3,), light)
+        sampler = ReSTIRSampler(scene, **{"burn_in": 2, "seed": 0, **options})
+        images = []
+        for step in range(3):
+            image = render(scene, values, spp=1, seed=step, sampler=sampler)
+            image.sum().backward()
+            images.append(image)
+        d = sampler.diagnostics()
+        return [*images, values[RED].grad, torch.tensor([float(d.get("max_W", 0.0)), float(d.get("mean_M", 0.0))])]
+
+    return run
+
+
 def _trainer_step(**model: Any) -> Callable[[dict], Any]:
     def run(ctx: dict) -> Any:
         import lightning.pytorch as pl
@@ -151,11 +214,47 @@ CASES: list[Case] = [
     Case("AdaptivePixelSampler", "1e30 in the maps", _sampler("adaptive", lambda: (torch.full((1, 8, 8), 1e30), torch.ones(1, 8, 8)))),
     Case("LossPixelSampler", "NaN in p1 (warning, uniform)", _sampler("loss", _nan_map)),
     Case("UniformPixelSampler", "2^25 pixels", lambda ctx: __import__("torchir.samplers", fromlist=["x"]).UniformPixelSampler(resolution=(4096, 8192), budget=8).sample().weight),
+    # modules (pure torch) ----------------------------------------------------------------
+    Case("TargetAwareDenoiser", "1e6 firefly in noisy", _module(lambda: _denoiser(), _images(((1, 3, 16, 16), _firefly), ((1, 3, 16, 16), None)))),
+    Case("TargetAwareDenoiser", "black target", _module(lambda: _denoiser(), _images(((1, 3, 16, 16), None), ((1, 3, 16, 16), torch.zeros_like)))),
+    Case("TargetAwareDenoiser", "1x1 image", _module(lambda: _denoiser(), _images(((1, 3, 1, 1), None), ((1, 3, 1, 1), None)))),
+    Case("TargetAwareDenoiser", "non-square 5x17 image", _module(lambda: _denoiser(), _images(((2, 3, 5, 17), None), ((2, 3, 5, 17), None)))),
+    Case("TargetAwareDenoiser", "NaN in noisy", _module(lambda: _denoiser(), _images(((1, 3, 8, 8), _nan), ((1, 3, 8, 8), None))), ValueError, "NaN"),
+    Case("LOILoss", "constant images", _module(lambda: _loi(), _images(((1, 3, 16, 16), lambda x: torch.full_like(x, 0.3)), ((1, 3, 16, 16), lambda x: torch.full_like(x, 0.7))))),
+    Case("LOILoss", "values far outside the range (bins with no mass)", _module(lambda: _loi(), _images(((1, 3, 16, 16), lambda x: x + 50), ((1, 3, 16, 16), lambda x: -x)))),
+    Case("LOILoss", "1e6 firefly", _module(lambda: _loi(), _images(((1, 3, 16, 16), _firefly), ((1, 3, 16, 16), None)))),
+    Case("LOILoss", "1x1 image", _module(lambda: _loi(), _images(((1, 3, 1, 1), None), ((1, 3, 1, 1), None)))),
+    Case("LOILoss", "NaN in target", _module(lambda: _loi(), _images(((1, 3, 8, 8), None), ((1, 3, 8, 8), _nan))), ValueError, "target"),
+    Case("LOILoss", "Mitsuba (H,W,C) layout", _module(lambda: _loi(), _images(((8, 8, 3), None), ((8, 8, 3), None))), ValueError, "(H, W, C)"),
+    # ReSTIR --------------------------------------------------------------------------------
+    Case("ReSTIRSampler", "light switched off (empty reservoirs)", _restir(light=0.0)),
+    Case("ReSTIRSampler", "1e6 radiance", _restir(light=1e6)),
+    Case("ReSTIRSampler", "zero albedo", _restir(albedo=0.0)),
+    Case("ReSTIRSampler", "one candidate, no reuse (B.1)", _restir(preset="b1")),
+    Case("ReSTIRSampler", "indirect light requested", lambda ctx: _restir_on_depth4(ctx), ValueError, "direct"),
     # trainer step ------------------------------------------------------------------------
     Case("trainer step", "1x1-pixel sampler budget", _trainer_step(sampler={"type": "adaptive", "budget": 1})),
     Case("trainer step", "unknown loss", _trainer_step(loss="l3"), ValueError, "model.loss"),
     Case("trainer step", "unknown sampler type", _trainer_step(sampler={"type": "magic"}), ValueError, "sampler.type"),
 ]
+
+
+def _denoiser() -> Any:
+    from torchir.modules import TargetAwareDenoiser
+
+    return TargetAwareDenoiser(radius=3)
+
+
+def _loi() -> Any:
+    from torchir.modules import LOILoss
+
+    return LOILoss(alphas=(1, 5), sigmas=(1,))
+
+
+def _restir_on_depth4(ctx: dict) -> Any:
+    from torchir.samplers import ReSTIRSampler
+
+    return ReSTIRSampler(ctx["cbox"])  # cbox renders with max_depth 4: not direct-only
 
 
 def _finite(result: Any) -> bool:
