@@ -63,3 +63,14 @@ def test_soak_table_flags_growth_and_recompilation():
     rows = table([ok, leaky, recompiling, {"technique": "broken", "error": "boom"}]).splitlines()[2:]
     assert rows[0].endswith("| yes |") and rows[1].endswith("| NO |") and rows[2].endswith("| NO |")
     assert "failed: boom" in rows[3]
+
+
+def test_claims_table_reads_results_and_marks_missing_figures(tmp_path):
+    from torchir.bench.claims import claims_table
+
+    (tmp_path / "adaptive").mkdir()
+    rows = [{"method": "adaptive", "budget": 0.03, "ratio_vs_uniform_all": 6.5}]
+    (tmp_path / "adaptive" / "results.json").write_text(json.dumps({"a": {"rows": rows}, "b": {"adaptive_time_ratio": 0.7}}))
+    table = claims_table(tmp_path)
+    assert "| 6.5x | yes |" in table and "| 0.7x | NO |" in table and "| not measured | - |" in table
+    assert "denoiser" not in table  # suites that did not run are left out

@@ -71,6 +71,11 @@ def write_report(out: Path, runs: list[dict], extremes: bool = True) -> Path:
         *[f"| {r['suite']} | {'ok' if r['exit_code'] == 0 else 'failed'} | {r['seconds']:.0f} |" for r in runs],
         "",
     ]
+    from .claims import claims_table
+
+    claims = claims_table(out)
+    if claims:
+        lines += ["## The papers' claims beside torchir's measurements", "", claims, ""]
     for run in runs:
         lines += _suite_section(run, out)
     if extremes:

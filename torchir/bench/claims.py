@@ -1,0 +1,86 @@
+"""The papers' claims beside torchir's measurements, read from the suites' ``results.json``.
+
+Each claim names the paper's number (or the issue's goal where the paper gives none), how to
+read torchir's figure from a suite's results, and the goal; the report shows them in one table
+so a reader can compare them without opening every suite.
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+
+@dataclass(frozen=True)
+class Claim:
+    suite: str
+    what: str
+    paper: str
+    goal: str
+    measure: Callable[[dict[str, Any]], float]  # results.json -> torchir's figure
+    met: Callable[[float], bool]
+    unit: str = "x"
+
+
+def _row(rows: list[dict], **match: Any) -> dict:
+    return next(r for r in rows if all(r.get(k) == v for k, v in match.items()))
+
+
+CLAIMS: list[Claim] = [
+    Claim("adaptive", "gradient variance, uniform / adaptive (3% budget, initial θ)", "-", ">= 5x",
+          lambda r: _row(r["a"]["rows"], method="adaptive", budget=0.03)["ratio_vs_uniform_all"], lambda v: v >= 5),
+    Claim("adaptive", "gradient variance, Eq. 5 / adaptive (glossy roughness, Fig. 3)", "3.35x", "> 2x",
+          lambda r: r["c"]["eq5_over_adaptive"], lambda v: v > 2),
+    Claim("adaptive", "wall time to uniform's final parameter error, adaptive / uniform", "faster (plots only)", "<= 0.5x",
+          lambda r: r["b"]["adaptive_time_ratio"], lambda v: v <= 0.5),
+    Claim("denoiser", "image error, target-aware / none (albedo, 4 spp)", "1/7.3 = 0.14x", "<= 0.2x",
+          lambda r: _denoiser_ratio(r, "albedo/spp4", "target_aware"), lambda v: v <= 0.2),
+    Claim("denoiser", "image error, target-aware / cross-bilateral (albedo, 4 spp)", "< 1x", "<= 1x",
+          lambda r: _denoiser_ratio(r, "albedo/spp4", "target_aware") / _denoiser_ratio(r, "albedo/spp4", "cross_bilateral"), lambda v: v <= 1),
+    Claim("denoiser", "forward+backward at 256², r = 15 / one 16-spp render step", "-", "<= 0.25x",
+          lambda r: _row(r["timing"], size=256, radius=15)["target_aware_ratio"], lambda v: v <= 0.25),
+    Claim("loi", "B1 glossy highlight: LOI successes from 6 starts", "Envlight: ~10x lower error than GP", ">= 5 of 6",
+          lambda r: r["summary"]["B1"]["loi"]["successes"], lambda v: v >= 5, unit=""),
+    Claim("loi", "B1: L2 successes from 6 starts", "fails", "<= 2 of 6",
+          lambda r: r["summary"]["B1"]["l2"]["successes"], lambda v: v <= 2, unit=""),
+    Claim("loi", "B3 known-colour disks: LOI - GP mean PSNR (dB)", "Table 1: LOI best", ">= +2 dB",
+          lambda r: r["summary"]["B3"][next(iter(r["summary"]["B3"]))]["loi"]["mean_psnr"] - r["summary"]["B3"][next(iter(r["summary"]["B3"]))]["gp"]["mean_psnr"],
+          lambda v: v >= 2, unit=" dB"),
+    Claim("loi", "LOI forward+backward at 256² / one render step", "-", "<= 0.2x",
+          lambda r: r["cost"]["ratio_to_render"]["loi"], lambda v: v <= 0.2),
+    Claim("restir", "gradient error, B.2 at equal time / ReSTIR", "up to 100x (GPU)", ">= 10x",
+          lambda r: _restir_equal_time(r["T-B1"]["uniform"], "B.2"), lambda v: v >= 10),
+    Claim("restir", "gradient error, B.2 at equal samples / ReSTIR", "-", "-",
+          lambda r: r["T-B1"]["uniform"]["B.2 (eq. samples)"]["ratio_to_restir"], lambda v: v >= 1),
+    Claim("restir", "reconstruction RMSE, B.2 at equal time / ReSTIR (shared paths)", "up to 20x (GPU)", ">= 5x",
+          lambda r: _restir_equal_time(r["T-B2"]["uniform/shared"], "B.2"), lambda v: v >= 5),
+]
+
+
+def _denoiser_ratio(r: dict, task: str, method: str) -> float:
+    runs = [v for k, v in r["optimisation"].items() if k.startswith(task + "/")]
+    ratios = sorted(run[method]["image_final"] / run["none"]["image_final"] for run in runs)
+    return ratios[len(ratios) // 2]
+
+
+def _restir_equal_time(table: dict, baseline: str) -> float:
+    key = next(k for k in table if k.startswith(f"{baseline} (eq. time"))
+    return table[key]["ratio_to_restir"]
+
+
+def claims_table(out: Path) -> str:
+    """Markdown table of every claim whose suite wrote results into ``out/<suite>/``."""
+    lines = ["| suite | claim | paper | goal | torchir | met |", "|---|---|---|---|---|---|"]
+    for claim in CLAIMS:
+        path = out / claim.suite / "results.json"
+        if not path.is_file():
+            continue
+        try:
+            value = claim.measure(json.loads(path.read_text()))
+            shown, met = f"{value:.3g}{claim.unit}", "yes" if claim.met(value) else "NO"
+        except (KeyError, StopIteration, TypeError, ZeroDivisionError, IndexError, ValueError):
+            shown, met = "not measured", "-"
+        lines.append(f"| {claim.suite} | {claim.what} | {claim.paper} | {claim.goal} | {shown} | {met} |")
+    return "\n".join(lines) if len(lines) > 2 else ""
