@@ -6,7 +6,13 @@ import math
 import pytest
 
 from torchir.bench import SUITES
-from torchir.bench.combined import CONFIGURATIONS, parse_args, plot_results, summarize, tables
+from torchir.bench.combined import (
+    CONFIGURATIONS,
+    parse_args,
+    plot_results,
+    summarize,
+    tables,
+)
 
 META = {"resolution": 32, "steps": 4, "seeds": 2}
 

@@ -231,6 +231,7 @@ CASES: list[Case] = [
     Case("ReSTIRSampler", "1e6 radiance", _restir(light=1e6)),
     Case("ReSTIRSampler", "zero albedo", _restir(albedo=0.0)),
     Case("ReSTIRSampler", "one candidate, no reuse (B.1)", _restir(preset="b1")),
+    Case("ReSTIRSampler", "light-position gradient (unsupported)", _trainer_step(scene="glossy_highlight", parameters={"light.azimuth": {"init": 0.5}}, sampler={"type": "restir"}), ValueError, "light parameter"),
     Case("ReSTIRSampler", "indirect light requested", lambda ctx: _restir_on_depth4(ctx), ValueError, "direct"),
     # trainer step ------------------------------------------------------------------------
     Case("trainer step", "1x1-pixel sampler budget", _trainer_step(sampler={"type": "adaptive", "budget": 1})),

@@ -35,7 +35,7 @@ def _render_drjit(scene: Scene, values: dict, grad_names: frozenset, settings: _
     return dr.custom(_RenderOp, scene, native, grad_names, settings)
 
 
-def _check_sampler(scene: Scene, sampler: object) -> None:
+def _check_sampler(scene: Scene, sampler: object, grad_names: frozenset[str]) -> None:
     from ..samplers.restir import ReSTIRSampler
 
     if not isinstance(sampler, ReSTIRSampler):
@@ -45,6 +45,16 @@ def _check_sampler(scene: Scene, sampler: object) -> None:
         )
     if sampler.scene is not scene:
         raise ValueError("the ReSTIRSampler was built for another Scene: build one per scene")
+    # ReSTIR differentiates the path contribution of the reservoirs' light samples, which are
+    # not rebuilt when a light moves: light placement gets no gradient (it failed inside Dr.Jit).
+    emitters = {e.id() for e in scene.mi_scene.emitters()}
+    for name in grad_names:
+        owner, _, field = name.partition(".")
+        if owner in emitters and not field.startswith(("intensity", "radiance", "irradiance", "scale")):
+            raise ValueError(
+                f"ReSTIR gives no gradient for the light parameter {name!r} (light samples are reused, not "
+                f"re-sampled, when a light moves): optimise it without sampler=, e.g. with the scene's own integrator"
+            )
 
 
 def render(
@@ -93,7 +103,7 @@ def render(
     settings = _args.render_settings(scene, sensor, spp, seed, spp_grad, seed_grad)
     values, grad_names = _args.split_params(scene, params)
     if sampler is not None:
-        _check_sampler(scene, sampler)
+        _check_sampler(scene, sampler, grad_names)
         image = render_restir_drjit(scene, values, grad_names, settings, sampler)  # (H, W, C)
         return image.permute(2, 0, 1)
     image = _render_drjit(scene, values, grad_names, settings)  # (H, W, C)

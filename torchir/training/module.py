@@ -110,6 +110,11 @@ class InverseRenderingModule(pl.LightningModule):
                 )
             if self.denoiser is not None:
                 raise ValueError("a denoiser needs full images: it cannot be combined with a pixel sampler (model.sampler)")
+        elif self.sampler is not None:
+            from ..functions.render import _check_sampler
+
+            derived = self.scene.derived
+            _check_sampler(self.scene, self.sampler, frozenset(derived[k].target if k in derived else k for k in self.keys))
         self.spp, self.spp_grad, self.seed, self.lr = spp, spp if spp_grad is None else spp_grad, seed, lr
         self.optimizer_name, self.preview_spp = optimizer, preview_spp
         self.nonfinite: Optional[str] = None  # set when a non-finite loss stopped the run
