@@ -19,7 +19,9 @@ Not differentiable.
 """
 from __future__ import annotations
 
+import weakref
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
@@ -28,6 +30,7 @@ import torch
 
 from ..scene import Scene
 from . import _args
+from ._passes import passes
 from .render_pixels import _check_integrator, _seeded_sampler
 
 __all__ = ["probe_pixels"]
@@ -61,19 +64,33 @@ def _to_drjit(scene: Scene, name: str, value: torch.Tensor):
     return scene.to_drjit(name, mi.TensorXf(value.detach().to(torch.float32).contiguous().cpu().numpy()))
 
 
+def _one_path_pass(mi_scene: mi.Scene, sensor: int, x: mi.Float, y: mi.Float, w: mi.Float, h: mi.Float, seed, count: int) -> mi.Color3f:
+    sampler = _seeded_sampler(seed, count)
+    with dr.suspend_grad():
+        ray, weight = _rays(mi_scene.sensors()[sensor], x, y, w, h, sampler)
+        L, _, _, _ = mi_scene.integrator().sample(
+            mode=dr.ADMode.Primal, scene=mi_scene, sampler=sampler, ray=ray,
+            depth=mi.UInt32(0), δL=None, δaovs=None, state_in=None, active=mi.Bool(True),
+        )
+        return mi.Color3f(L * weight)
+
+
+# Frozen per scene (the lane count keys the recordings, as in render_pixels): Stage 1 runs the
+# same grids every refresh, and tracing the integrator costs far more than its kernels.
+_FROZEN: weakref.WeakKeyDictionary[Scene, Any] = weakref.WeakKeyDictionary()
+
+
 def _one_path(scene: Scene, values: dict[str, torch.Tensor], lanes: tuple, sensor: int, seed: int) -> mi.Color3f:
     """Radiance (times the camera ray weight) of one path per lane, with ``values`` bound."""
     scene.bind({name: _to_drjit(scene, name, v) for name, v in values.items()})
-    x, y, w, h = lanes
-    sampler = _seeded_sampler(seed, dr.width(x))
-    with dr.suspend_grad():
-        ray, weight = _rays(scene.sensor(sensor), x, y, w, h, sampler)
-        L, _, _, _ = scene.integrator.sample(
-            mode=dr.ADMode.Primal, scene=scene.mi_scene, sampler=sampler, ray=ray,
-            depth=mi.UInt32(0), δL=None, δaovs=None, state_in=None, active=mi.Bool(True),
-        )
-        result = mi.Color3f(L * weight)
-        dr.eval(result)
+    count = dr.width(lanes[0])
+    if passes(scene)._replayable():
+        if scene not in _FROZEN:
+            _FROZEN[scene] = dr.freeze(_one_path_pass, limit=4)
+        result = _FROZEN[scene](scene.mi_scene, sensor, *lanes, dr.opaque(mi.UInt32, seed), count)
+    else:
+        result = _one_path_pass(scene.mi_scene, sensor, *lanes, seed, count)
+    dr.eval(result)
     return result
 
 
