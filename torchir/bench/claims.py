@@ -56,6 +56,10 @@ CLAIMS: list[Claim] = [
           lambda r: r["T-B1"]["uniform"]["B.2 (eq. samples)"]["ratio_to_restir"], lambda v: v >= 1),
     Claim("restir", "reconstruction RMSE, B.2 at equal time / ReSTIR (shared paths)", "up to 20x (GPU)", ">= 5x",
           lambda r: _restir_equal_time(r["T-B2"]["uniform/shared"], "B.2"), lambda v: v >= 5),
+    Claim("soak", "largest memory growth after warm-up, any technique", "-", "< 5%",
+          lambda r: 100 * max(t["memory_growth"] for t in r), lambda v: v < 5, unit="%"),
+    Claim("soak", "kernel-cache misses after warm-up, all techniques", "-", "0",
+          lambda r: sum(t["cache_misses_after_warmup"] for t in r), lambda v: v == 0, unit=""),
 ]
 
 
