@@ -27,6 +27,23 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
 ALL = tuple(SUITES)
 
 
+def environment() -> dict:
+    """Versions and machine facts recorded with every suite's results."""
+    import os
+    import platform
+
+    import drjit as dr
+    import torch
+
+    from .. import backend
+
+    return {
+        "torchir_backend": backend.describe(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+        "drjit_threads": dr.thread_count(), "cpu_count": os.cpu_count(), "load_average_1_5_15min": list(os.getloadavg()),
+        "python": platform.python_version(), "platform": platform.platform(),
+    }
+
+
 def run_suites(suites: Sequence[str], quick: bool, out: Path) -> list[dict]:
     """Run ``suites`` (``"all"`` expands to every suite) and write the report into ``out``."""
     from .report import write_report

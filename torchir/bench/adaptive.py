@@ -45,7 +45,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 import zlib
 from collections.abc import Sequence
@@ -59,6 +58,7 @@ import numpy as np
 import torch
 
 import torchir
+from torchir.bench import environment
 from torchir.functions import render, render_pixels
 from torchir.modules.losses import L2Loss
 from torchir.samplers import AdaptivePixelSampler, LossPixelSampler, UniformPixelSampler
@@ -775,14 +775,6 @@ def plot_pmfs(path: Path, problem: Problem, pmfs: dict[str, np.ndarray], title: 
 
 
 # ------------------------------------------------------------------------------ main
-def environment() -> dict[str, Any]:
-    return {
-        "torchir_backend": torchir.backend.describe(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-        "drjit_threads": dr.thread_count(), "cpu_count": os.cpu_count(), "load_average_1_5_15min": list(os.getloadavg()),
-        "python": platform.python_version(), "platform": platform.platform(),
-    }
-
-
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     cfg = parse_args(argv)
     torchir.backend.variant()

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -44,6 +43,7 @@ import numpy as np
 import torch
 
 import torchir
+from torchir.bench import environment
 from torchir.backend import KernelStats, count_kernels
 from torchir.functions import render
 
@@ -333,20 +333,6 @@ def format_table(summaries: dict[str, MethodSummary], ratio: float) -> str:
         )
     lines.append(f"ratio torchir/native: {ratio:.2f}")
     return "\n".join(lines)
-
-
-def environment() -> dict[str, Any]:
-    """Versions and machine facts recorded with the results."""
-    return {
-        "torchir_backend": torchir.backend.describe(),
-        "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(),
-        "drjit_threads": dr.thread_count(),
-        "cpu_count": os.cpu_count(),
-        "load_average_1_5_15min": list(os.getloadavg()),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-    }
 
 
 def save(out: Path, cfg: Config, setup: Setup, warm: dict[str, KernelStats], blocks: list[Block],

@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import mitsuba as mi
 import torch
 
 from ._common import perspective, resolution_hw
