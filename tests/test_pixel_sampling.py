@@ -9,10 +9,10 @@ import torch
 import torch.nn.functional as F
 
 import torchir
-from torchir.functions import render, render_pixels
+from torchir.functions import render
 from torchir.functions.probe import probe_pixels
 from torchir.modules import L2Loss
-from torchir.samplers import AdaptivePixelSampler, LossPixelSampler, UniformPixelSampler
+from torchir.samplers import AdaptivePixelSampler, LossPixelSampler, UniformPixelSampler, sampled_loss
 
 from .conftest import RES
 
@@ -73,20 +73,11 @@ def test_stage1_adaptive_pmf_follows_the_parameter(cbox, red):
     assert d["predicted_gain"] >= 1.0 and d["stage1_paths"] > 0 and d["stage1_seconds"] > 0
 
 
-def _sampled_gradient(scene, params, sampler, target, step, sensor_targets):
-    """The trainer's estimator (paper 000, E16): one pixel batch, render_pixels, weighted loss."""
-    h, w = scene.resolution
-    batch = sampler.sample()
-    view_of, local = batch.index // (h * w), batch.index % (h * w)
-    loss = 0.0
-    for view in range(scene.sensor_count):
-        chosen = (view_of == view).nonzero().squeeze(1)
-        if chosen.numel() == 0:
-            continue
-        radiance = render_pixels(scene, params, local[chosen], spp=1, seed=1000 * step + view, sensor=view)
-        wanted = sensor_targets[view].flatten(1).t()[local[chosen]]
-        loss = loss + (batch.weight[chosen] * L2Loss().pixel_terms(radiance, wanted, scene.sensor_count * h * w)).sum()
-    (grad,) = torch.autograd.grad(loss, list(params.values()))
+def _sampled_gradient(scene, params, sampler, step, sensor_targets):
+    """The trainer's estimator (paper 000, E16) on one pixel batch over every view."""
+    views = list(range(scene.sensor_count))
+    scored = sampled_loss(scene, params, sampler.sample(), sensor_targets, views, L2Loss(), seed=lambda v: 1000 * step + v)
+    (grad,) = torch.autograd.grad(scored.loss, list(params.values()))
     return grad.flatten()
 
 
@@ -108,7 +99,7 @@ def test_sampled_gradient_is_unbiased(cbox, cls):
     target = _target(cbox, {})
     sampler = cls(cbox, budget=48, seed=1)
     sampler.update({KEY: value.detach()}, target[None], L2Loss(), step=0)
-    sampled = torch.stack([_sampled_gradient(cbox, params, sampler, target, i, [target]) for i in range(100)])
+    sampled = torch.stack([_sampled_gradient(cbox, params, sampler, i, [target]) for i in range(100)])
     full = torch.stack([_full_gradient(cbox, params, target[None], seed) for seed in range(30)])
     z = _z_scores(sampled, full)
     assert bool((z.abs() < 4.5).all()), z
@@ -124,7 +115,7 @@ def test_sampled_gradient_multiview_global_pmf():
     sampler = AdaptivePixelSampler(scene, budget=64, seed=2)
     sampler.update({key: value.detach()}, targets, L2Loss(), step=0)
     assert sampler.pdf.numel() == 2 * RES * RES
-    sampled = torch.stack([_sampled_gradient(scene, {key: value}, sampler, targets, i, targets) for i in range(100)])
+    sampled = torch.stack([_sampled_gradient(scene, {key: value}, sampler, i, targets) for i in range(100)])
     full = torch.stack([_full_gradient(scene, {key: value}, targets, seed) for seed in range(30)])
     z = _z_scores(sampled, full)
     assert float((z.abs() > 3).float().mean()) <= 0.02 and float(z.abs().max()) < 5.0, z

@@ -8,7 +8,7 @@ Three pixel samplers from :mod:`torchir.samplers` drive the same inverse-renderi
 * ``adaptive``: :class:`AdaptivePixelSampler` (``p_j ∝ sqrt(p1_j p2_j)``, paper Eq. 8);
 * ``full`` (reference only): the full-image gradient, every pixel at 1 spp.
 
-The estimator replicates ``InverseRenderingModule.sampled_loss``: draw ``N`` pixels, render them
+The estimator is the trainer's (:func:`torchir.samplers.sampled_loss`): draw ``N`` pixels, render them
 with :func:`torchir.functions.render_pixels` (1 primal path, 1 independent replay path, spec
 E3/E16), loss ``(weight * L2Loss.pixel_terms(radiance, target, m)).sum()``, backward. The loop is
 plain torch (Adam, projection to [0, 1]), not the Lightning trainer. Stage 1 runs when
@@ -59,9 +59,9 @@ import torch
 
 import torchir
 from torchir.bench import environment
-from torchir.functions import render, render_pixels
+from torchir.functions import render
 from torchir.modules.losses import L2Loss
-from torchir.samplers import AdaptivePixelSampler, LossPixelSampler, UniformPixelSampler
+from torchir.samplers import AdaptivePixelSampler, LossPixelSampler, UniformPixelSampler, sampled_loss
 
 SAMPLER_CLASSES = {"uniform": UniformPixelSampler, "eq5": LossPixelSampler, "adaptive": AdaptivePixelSampler}
 METHODS = ("uniform", "eq5", "adaptive")
@@ -181,10 +181,6 @@ class Problem:
         h, w = self.scene.resolution
         return h * w
 
-    @property
-    def target_pixels(self) -> torch.Tensor:  # (m, C)
-        return self.target.flatten(1).t().contiguous()
-
     def leaves(self, values: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
         """Fresh leaf tensors (requires_grad) of ``values`` (default: the initial values)."""
         values = self.init if values is None else values
@@ -272,13 +268,12 @@ def refresh(problem: Problem, sampler, values: dict[str, torch.Tensor], step: in
     sampler.update(values, [problem.target], problem.loss_fn, step=step)
 
 
-def sampled_loss(problem: Problem, sampler, values: dict[str, torch.Tensor], seed: int) -> tuple[torch.Tensor, int]:
-    """The importance-weighted loss of one pixel batch (as ``InverseRenderingModule.sampled_loss``,
+def pixel_loss(problem: Problem, sampler, values: dict[str, torch.Tensor], seed: int) -> tuple[torch.Tensor, int]:
+    """The importance-weighted loss of one pixel batch (:func:`torchir.samplers.sampled_loss`,
     one view, spp = spp_grad = 1) and the paths it traces (primal + replay)."""
     batch = sampler.sample()
-    radiance = render_pixels(problem.scene, values, batch.index, spp=1, seed=seed, spp_grad=1)
-    terms = problem.loss_fn.pixel_terms(radiance, problem.target_pixels[batch.index], problem.m)
-    return (batch.weight * terms).sum(), 2 * batch.index.numel()
+    scored = sampled_loss(problem.scene, values, batch, [problem.target], [0], problem.loss_fn, seed=lambda view: seed, spp=1, spp_grad=1)
+    return scored.loss, 2 * batch.index.numel()
 
 
 def full_loss(problem: Problem, values: dict[str, torch.Tensor], seed: int) -> tuple[torch.Tensor, int]:
@@ -342,7 +337,7 @@ def gradient_statistics(problem: Problem, method: str, budget: float | None, dra
         s = draw_seed(seed, 7, i)
         dr.sync_thread()
         t0 = time.perf_counter()
-        loss, paths = full_loss(problem, leaves, s) if method == "full" else sampled_loss(problem, sampler, leaves, s)
+        loss, paths = full_loss(problem, leaves, s) if method == "full" else pixel_loss(problem, sampler, leaves, s)
         samples.append(flat_grad(loss, leaves))
         dr.sync_thread()
         seconds.append(time.perf_counter() - t0)
@@ -504,7 +499,7 @@ class Run:
         if self.sampler is None:
             loss, n = full_loss(p, self.values, seed)
         else:
-            loss, n = sampled_loss(p, self.sampler, self.values, seed)
+            loss, n = pixel_loss(p, self.sampler, self.values, seed)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()

@@ -3,7 +3,7 @@
 ``SAMPLERS`` maps the names a YAML config uses (``sampler: {type: adaptive, budget: 0.25}``)
 to sampler classes; each is built as ``SAMPLERS[type](scene, **options)``.
 """
-from .pixel import AdaptivePixelSampler, LossPixelSampler, PixelBatch, PixelSampler, UniformPixelSampler
+from .pixel import AdaptivePixelSampler, LossPixelSampler, PixelBatch, PixelSampler, SampledLoss, UniformPixelSampler, sampled_loss
 from .restir import ReSTIRSampler
 
 SAMPLERS: dict[str, type] = {  # name -> sampler class, constructed as cls(scene, **options)
@@ -13,4 +13,4 @@ SAMPLERS: dict[str, type] = {  # name -> sampler class, constructed as cls(scene
     "restir": ReSTIRSampler,
 }
 
-__all__ = ["SAMPLERS", "PixelBatch", "PixelSampler", "UniformPixelSampler", "LossPixelSampler", "AdaptivePixelSampler", "ReSTIRSampler"]
+__all__ = ["SAMPLERS", "PixelBatch", "SampledLoss", "sampled_loss", "PixelSampler", "UniformPixelSampler", "LossPixelSampler", "AdaptivePixelSampler", "ReSTIRSampler"]

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import torch
@@ -45,6 +45,67 @@ class PixelBatch(NamedTuple):
 
     index: torch.Tensor
     weight: torch.Tensor
+
+
+class SampledLoss(NamedTuple):
+    """One pixel batch rendered and scored (see :func:`sampled_loss`).
+
+    Attributes:
+        loss: the importance-weighted loss, an unbiased estimate of the full-image loss.
+        radiance, target: ``(N, C)`` rendered and target values of the drawn pixels, grouped by view.
+        weight: ``(N,)`` their importance weights, in the same order.
+    """
+
+    loss: torch.Tensor
+    radiance: torch.Tensor
+    target: torch.Tensor
+    weight: torch.Tensor
+
+
+def sampled_loss(
+    scene: Any,
+    params: Mapping[str, torch.Tensor],
+    batch: PixelBatch,
+    targets: torch.Tensor | Sequence[torch.Tensor],
+    views: Sequence[int],
+    loss: nn.Module,
+    seed: Callable[[int], int],
+    spp: int = 1,
+    spp_grad: int | None = None,
+) -> SampledLoss:
+    """The importance-weighted loss of one pixel batch (paper 000, E16).
+
+    The drawn pixels of each view are rendered with :func:`torchir.functions.render_pixels`,
+    whose gradient pass replays independent paths (E3), and scored with the per-pixel loss:
+    ``loss = sum_n w_n l_n``, with ``l_n`` from ``loss.pixel_terms``. Backpropagating it gives
+    an unbiased estimate of the gradient of ``loss`` over the full images of ``views``.
+
+    Args:
+        scene: the :class:`torchir.Scene` the sampler draws for.
+        params: parameters bound for the render (as for :func:`torchir.functions.render`).
+        batch: pixels drawn from ``views`` (``sampler.sample(views)``).
+        targets: ``(V', C, H, W)`` or a list of ``(C, H, W)``, one per entry of ``views``.
+        views: the sensors of the batch, in the order of ``targets``.
+        loss: a per-pixel loss module with ``pixel_terms``.
+        seed: ``view -> seed`` of that view's primal paths.
+        spp, spp_grad: paths per drawn pixel in the primal and gradient passes.
+    """
+    from ..functions import render_pixels  # Dr.Jit side, loaded on first use
+
+    h, w = scene.resolution
+    view_of, local = batch.index // (h * w), batch.index % (h * w)
+    rendered, wanted, weights = [], [], []
+    for position, view in enumerate(views):
+        chosen = (view_of == view).nonzero().squeeze(1)
+        if chosen.numel() == 0:
+            continue
+        pixels = local[chosen]
+        rendered.append(render_pixels(scene, params, pixels, spp=spp, seed=seed(view), sensor=view, spp_grad=spp_grad))
+        wanted.append(targets[position].flatten(1).t()[pixels])
+        weights.append(batch.weight[chosen])
+    radiance, target, weight = torch.cat(rendered), torch.cat(wanted), torch.cat(weights)
+    terms = loss.pixel_terms(radiance, target, len(views) * h * w)
+    return SampledLoss((weight * terms).sum(), radiance, target, weight)
 
 
 def _check_budget(budget: object, pixel_count: int) -> int:

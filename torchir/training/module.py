@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from .. import Scene
-from ..functions import render, render_pixels
+from ..functions import render
 from .parameters import ParameterConfig, SceneParameter, resolve_value
 
 __all__ = ["InverseRenderingModule", "NonFiniteLossError"]
@@ -229,23 +229,15 @@ class InverseRenderingModule(pl.LightningModule):
     def sampled_loss(self, views: list[int], targets: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor, int]:
         """The importance-weighted loss of one pixel batch (paper 000, E16), its weighted squared
         error (for logging) and the number of paths traced."""
+        from ..samplers import sampled_loss
+
         batch = self.sampler.sample(views)
-        h, w = self.scene.resolution
-        view_of, local = batch.index // (h * w), batch.index % (h * w)
-        values = self.scene_values()
-        rendered, wanted, weights = [], [], []
-        for position, view in enumerate(views):
-            chosen = (view_of == view).nonzero().squeeze(1)
-            if chosen.numel() == 0:
-                continue
-            pixels = local[chosen]
-            rendered.append(render_pixels(self.scene, values, pixels, spp=self.spp, seed=self.step_seed(step, view), sensor=view, spp_grad=self.spp_grad))
-            wanted.append(targets[position].flatten(1).t()[pixels])
-            weights.append(batch.weight[chosen])
-        radiance, target, weight = torch.cat(rendered), torch.cat(wanted), torch.cat(weights)
-        terms = self.loss_fn.pixel_terms(radiance, target, len(views) * h * w)
-        error = (weight * (radiance.detach() - target).square().mean(-1)).sum()
-        return (weight * terms).sum(), error, batch.index.numel() * (self.spp + self.spp_grad)
+        scored = sampled_loss(
+            self.scene, self.scene_values(), batch, targets, views, self.loss_fn,
+            seed=lambda view: self.step_seed(step, view), spp=self.spp, spp_grad=self.spp_grad,
+        )
+        error = (scored.weight * (scored.radiance.detach() - scored.target).square().mean(-1)).sum()
+        return scored.loss, error, batch.index.numel() * (self.spp + self.spp_grad)
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> Optional[torch.Tensor]:
         views = [int(v) for v in batch["view"]]
