@@ -19,19 +19,18 @@ Not differentiable.
 """
 from __future__ import annotations
 
-import weakref
+import functools
 from collections.abc import Mapping, Sequence
-from typing import Any
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 import torch
 
+from .. import backend
 from ..scene import Scene
 from . import _args
-from ._passes import passes
-from .render_pixels import _check_integrator, _seeded_sampler
+from .render_pixels import _check_integrator, _pixel_passes
 
 __all__ = ["probe_pixels"]
 
@@ -50,46 +49,23 @@ def _grid_lanes(grids: Sequence[tuple[int, int]], passes: int) -> tuple[np.ndarr
     return tuple(np.concatenate(a) for a in (xs, ys, ws, hs))  # type: ignore[return-value]
 
 
-def _rays(sensor: mi.Sensor, x: mi.Float, y: mi.Float, w: mi.Float, h: mi.Float, sampler: mi.Sampler):
-    pos = mi.Vector2f(x, y) + sampler.next_2d()
-    pos_01 = mi.Vector2f(pos.x / w, pos.y / h)
-    aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.0)
-    time = sensor.shutter_open()
-    if sensor.shutter_open_time() > 0:
-        time += sampler.next_1d() * sensor.shutter_open_time()
-    return sensor.sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
+@functools.lru_cache(maxsize=8)
+def _lanes(variant: str, grids: tuple[tuple[int, int], ...], passes: int) -> tuple[mi.Float, ...]:
+    """The lane arrays of :func:`_grid_lanes` as Dr.Jit arrays, made once per configuration:
+    a frozen pass given freshly built copies of these constant arrays re-records on every
+    call (measured: one recording per call instead of one in all), so every refresh reuses
+    the same arrays."""
+    return tuple(mi.Float(a) for a in _grid_lanes(grids, passes))
 
 
 def _to_drjit(scene: Scene, name: str, value: torch.Tensor):
     return scene.to_drjit(name, mi.TensorXf(value.detach().to(torch.float32).contiguous().cpu().numpy()))
 
 
-def _one_path_pass(mi_scene: mi.Scene, sensor: int, x: mi.Float, y: mi.Float, w: mi.Float, h: mi.Float, seed, count: int) -> mi.Color3f:
-    sampler = _seeded_sampler(seed, count)
-    with dr.suspend_grad():
-        ray, weight = _rays(mi_scene.sensors()[sensor], x, y, w, h, sampler)
-        L, _, _, _ = mi_scene.integrator().sample(
-            mode=dr.ADMode.Primal, scene=mi_scene, sampler=sampler, ray=ray,
-            depth=mi.UInt32(0), δL=None, δaovs=None, state_in=None, active=mi.Bool(True),
-        )
-        return mi.Color3f(L * weight)
-
-
-# Frozen per scene (the lane count keys the recordings, as in render_pixels): Stage 1 runs the
-# same grids every refresh, and tracing the integrator costs far more than its kernels.
-_FROZEN: weakref.WeakKeyDictionary[Scene, Any] = weakref.WeakKeyDictionary()
-
-
 def _one_path(scene: Scene, values: dict[str, torch.Tensor], lanes: tuple, sensor: int, seed: int) -> mi.Color3f:
     """Radiance (times the camera ray weight) of one path per lane, with ``values`` bound."""
     scene.bind({name: _to_drjit(scene, name, v) for name, v in values.items()})
-    count = dr.width(lanes[0])
-    if passes(scene)._replayable():
-        if scene not in _FROZEN:
-            _FROZEN[scene] = dr.freeze(_one_path_pass, limit=4)
-        result = _FROZEN[scene](scene.mi_scene, sensor, *lanes, dr.opaque(mi.UInt32, seed), count)
-    else:
-        result = _one_path_pass(scene.mi_scene, sensor, *lanes, seed, count)
+    result = _pixel_passes(scene).one_path(sensor, lanes, seed)  # frozen like render_pixels
     dr.eval(result)
     return result
 
@@ -141,7 +117,7 @@ def probe_pixels(
         if tuple(t.shape) != tuple(values[name].shape):
             raise ValueError(f"tangent of {name!r} has shape {tuple(t.shape)}, the parameter {tuple(values[name].shape)}")
 
-    lanes = tuple(mi.Float(a) for a in _grid_lanes(grids, passes))
+    lanes = _lanes(backend.variant(), tuple((int(h), int(w)) for h, w in grids), passes)
     if not tangents:
         return _split(_one_path(scene, values, lanes, sensor, seed), grids, passes), None
     shifted = [{**values, **{k: values[k] + sign * step * tangents[k].to(values[k]) for k in tangents}} for sign in (1.0, -1.0)]

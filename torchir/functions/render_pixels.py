@@ -31,21 +31,26 @@ class _PixelSettings(_args.RenderSettings):
     index: mi.UInt32  # (N,) flat pixel indices; not differentiable
 
 
-def _pixel_rays(sensor: mi.Sensor, pixel: mi.UInt32, sampler: mi.Sampler):
-    """Camera rays through uniformly jittered points of the given pixels (flat ``y * W + x``
-    within the film's crop window). Returns ``(ray, ray weight)``."""
-    film = sensor.film()
-    width = film.crop_size()[0]
-    y = pixel // width
-    x = pixel - y * width
-    pos = mi.Vector2f(mi.Float(x), mi.Float(y)) + sampler.next_2d()
-    pos_01 = pos * dr.rcp(mi.ScalarVector2f(film.crop_size()))
+def _film_rays(sensor: mi.Sensor, x: mi.Float, y: mi.Float, width, height, sampler: mi.Sampler):
+    """Camera rays through uniformly jittered points of pixel ``(x, y)`` of a ``width x height``
+    grid over the film's crop window (the film's own pixels, or a coarser grid). Returns
+    ``(ray, ray weight)``."""
+    pos = mi.Vector2f(x, y) + sampler.next_2d()
+    pos_01 = mi.Vector2f(pos.x / width, pos.y / height)
     aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.0)
     time = sensor.shutter_open()
     if sensor.shutter_open_time() > 0:
         time += sampler.next_1d() * sensor.shutter_open_time()
     with dr.resume_grad():
         return sensor.sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
+
+
+def _pixel_rays(sensor: mi.Sensor, pixel: mi.UInt32, sampler: mi.Sampler):
+    """Camera rays through the given film pixels (flat ``y * W + x`` within the crop window)."""
+    width, height = sensor.film().crop_size()
+    y = pixel // width
+    x = pixel - y * width
+    return _film_rays(sensor, mi.Float(x), mi.Float(y), float(width), float(height), sampler)
 
 
 def _per_lane(array_type: type, per_pixel, spp: int):
@@ -91,8 +96,22 @@ def _adjoint_pass(mi_scene: mi.Scene, sensor: int, index: mi.UInt32, δ_pixel: m
         )
 
 
+def _one_path_pass(mi_scene: mi.Scene, sensor: int, x: mi.Float, y: mi.Float, w: mi.Float, h: mi.Float, seed: Any, count: int) -> mi.Color3f:
+    """Radiance (times the ray weight) of one path per lane through pixel ``(x, y)`` of a
+    ``w x h`` grid (Stage-1 probes of :mod:`torchir.functions.probe`)."""
+    sampler = _seeded_sampler(seed, count)
+    with dr.suspend_grad():
+        ray, weight = _film_rays(mi_scene.sensors()[sensor], x, y, w, h, sampler)
+        L, _, _, _ = mi_scene.integrator().sample(
+            mode=dr.ADMode.Primal, scene=mi_scene, sampler=sampler, ray=ray,
+            depth=mi.UInt32(0), δL=None, δaovs=None, state_in=None, active=mi.Bool(True),
+        )
+        return mi.Color3f(L * weight)
+
+
 class _PixelPasses:
-    """The pixel passes of one scene, frozen (``dr.freeze``) for pixel counts seen before.
+    """The pixel passes of one scene (subset primal and replay, Stage-1 probes), frozen
+    (``dr.freeze``) for lane counts seen before.
 
     Tracing the integrator in Python dominates a subset render (about 17 ms per call against
     0.2 ms of kernels at a few hundred pixels). A frozen pass bakes the lane count into its
@@ -108,6 +127,7 @@ class _PixelPasses:
         self.seen: dict[tuple, int] = {}
         self._primal = dr.freeze(_primal_pass, limit=_RECORDINGS)
         self._adjoint = dr.freeze(_adjoint_pass, limit=_RECORDINGS)
+        self._one_path = dr.freeze(_one_path_pass, limit=_RECORDINGS)
 
     def _frozen(self, key: tuple) -> bool:
         if key not in self.seen and len(self.seen) >= 4 * _RECORDINGS:  # forget counts used once
@@ -120,6 +140,12 @@ class _PixelPasses:
         if self._frozen(("primal", sensor, count, spp)):
             return self._primal(self.scene.mi_scene, sensor, index, dr.opaque(mi.UInt32, seed), spp, count)
         return _primal_pass(self.scene.mi_scene, sensor, index, seed, spp, count)
+
+    def one_path(self, sensor: int, lanes: tuple[mi.Float, mi.Float, mi.Float, mi.Float], seed: int) -> mi.Color3f:
+        count = dr.width(lanes[0])
+        if self._frozen(("one_path", sensor, count)):
+            return self._one_path(self.scene.mi_scene, sensor, *lanes, dr.opaque(mi.UInt32, seed), count)
+        return _one_path_pass(self.scene.mi_scene, sensor, *lanes, seed, count)
 
     def adjoint(self, sensor: int, index: mi.UInt32, δ_pixel: mi.Color3f, seed: int, spp: int, params: dict) -> None:
         count = dr.width(index)
