@@ -155,15 +155,23 @@ class count_kernels:
         return self.stats
 
     def __exit__(self, *exc) -> None:
-        dr.sync_thread()
-        for entry in dr.kernel_history():
-            if entry["type"] != dr.KernelType.JIT:
-                continue
-            self.stats.launched += 1
-            self.stats.execution_time += float(entry.get("execution_time", 0.0)) * 1e-3
-            if not entry.get("cache_hit", 0):
-                self.stats.cache_misses += 1
-                if not entry.get("cache_disk", 0):
-                    self.stats.compiled += 1
-                    self.stats.hashes.append(str(entry.get("hash", "")))
+        drain_kernel_history(self.stats)
         dr.set_flag(dr.JitFlag.KernelHistory, self._previous)
+
+
+def drain_kernel_history(stats: KernelStats | None = None) -> KernelStats:
+    """Wait for queued kernels, then move Dr.Jit's kernel history (recorded while
+    ``JitFlag.KernelHistory`` is on) into ``stats`` (a new one by default)."""
+    stats = KernelStats() if stats is None else stats
+    dr.sync_thread()
+    for entry in dr.kernel_history():
+        if entry["type"] != dr.KernelType.JIT:
+            continue
+        stats.launched += 1
+        stats.execution_time += float(entry.get("execution_time", 0.0)) * 1e-3
+        if not entry.get("cache_hit", 0):
+            stats.cache_misses += 1
+            if not entry.get("cache_disk", 0):
+                stats.compiled += 1
+                stats.hashes.append(str(entry.get("hash", "")))
+    return stats

@@ -47,6 +47,7 @@ def run_one(technique: str, steps: int, warmup: int, resolution: int) -> dict[st
     import drjit as dr
     import lightning.pytorch as pl
 
+    from torchir.backend import drain_kernel_history
     from torchir.training import InverseRenderingModule, ViewDataModule
 
     class Recorder(pl.Callback):
@@ -55,18 +56,10 @@ def run_one(technique: str, steps: int, warmup: int, resolution: int) -> dict[st
             self.start = time.perf_counter()
 
         def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-            dr.sync_thread()
-            launched = misses = compiled = 0
-            for entry in dr.kernel_history():
-                if entry["type"] != dr.KernelType.JIT:
-                    continue
-                launched += 1
-                if not entry.get("cache_hit", 0):
-                    misses += 1
-                    compiled += 0 if entry.get("cache_disk", 0) else 1
+            kernels = drain_kernel_history()
             self.rows.append({
                 "step": trainer.global_step, "seconds": time.perf_counter() - self.start, "rss_mb": _rss_bytes() / 2**20,
-                "launched": launched, "cache_misses": misses, "compiled": compiled,
+                "launched": kernels.launched, "cache_misses": kernels.cache_misses, "compiled": kernels.compiled,
             })
 
     model = {
