@@ -50,17 +50,21 @@ def _context() -> dict[str, Any]:
 RED, LIGHT = "red.reflectance.value", "light.emitter.radiance.value"
 
 
+def _with_gradients(out: torch.Tensor, values: dict[str, torch.Tensor]) -> Any:
+    """``out``, and the gradients of its sum w.r.t. the values that require grad."""
+    leaves = [v for v in values.values() if v.requires_grad]
+    if not leaves:
+        return out
+    out.sum().backward()
+    return [out, *[v.grad for v in leaves]]
+
+
 def _render(scene: str, params: Callable[[], dict] | None = None, **kw) -> Callable[[dict], Any]:
     def run(ctx: dict) -> Any:
         from torchir.functions import render
 
         values = {} if params is None else params()
-        image = render(ctx[scene], values, **{"spp": 2, "seed": 1, **kw})
-        grads = [v for v in values.values() if v.requires_grad]
-        if grads:
-            image.sum().backward()
-            return [image, *[g.grad for g in grads]]
-        return image
+        return _with_gradients(render(ctx[scene], values, **{"spp": 2, "seed": 1, **kw}), values)
 
     return run
 
@@ -70,12 +74,7 @@ def _pixels(scene: str, index: Callable[[dict], torch.Tensor], params: Callable[
         from torchir.functions import render_pixels
 
         values = {} if params is None else params()
-        out = render_pixels(ctx[scene], values, index(ctx), **{"spp": 1, "seed": 2, **kw})
-        grads = [v for v in values.values() if v.requires_grad]
-        if grads:
-            out.sum().backward()
-            return [out, *[g.grad for g in grads]]
-        return out
+        return _with_gradients(render_pixels(ctx[scene], values, index(ctx), **{"spp": 1, "seed": 2, **kw}), values)
 
     return run
 

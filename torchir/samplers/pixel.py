@@ -267,11 +267,11 @@ class PixelSampler:
         over those views, as a full render of that view batch would give.
         """
         n = self.budget
-        if views is None or sorted(set(int(v) for v in views)) == list(range(self.views)):
+        views = list(range(self.views)) if views is None else sorted({int(v) for v in views})
+        if views == list(range(self.views)):
             index, prob = _pmf.draw(self._cdf, n, self.generator)
             m = self.pixel_count
         else:
-            views = sorted(set(int(v) for v in views))
             if not views or views[0] < 0 or views[-1] >= self.views:
                 raise ValueError(f"views must be a non-empty subset of range({self.views}), got {views}")
             per_view = self.resolution[0] * self.resolution[1]
