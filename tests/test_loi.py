@@ -120,6 +120,47 @@ def test_paper_literal_tail_zero():
     assert edge.item() < 0.045  # under-counts near the ends of the range (spec 6.1.13)
 
 
+def test_pad_border_crop_is_exact():
+    """border="pad" evaluates small-alpha terms on a cropped canvas: it must equal the plain
+    renormalised loss on explicitly padded images (rescaled to the unpadded pixel count)."""
+    h, w, m = 24, 20, 12  # pad_frac 0.5 * max(H, W)
+    x = _rand(1, 2, h, w, lo=0.05, hi=0.95, dtype=D64).requires_grad_()
+    y = _rand(1, 2, h, w, seed=1, lo=0.05, hi=0.95, dtype=D64)
+    opts = dict(alphas=(0, 1, 2, 6), sigmas=(0, 1), beta=0.25)
+    got = loi_loss(x, y, border="pad", pad_frac=0.5, **opts)
+    pad = lambda t: torch.nn.functional.pad(t, (m, m, m, m))  # noqa: E731
+    ref = loi_loss(pad(x), pad(y), border="renormalize", **opts) * ((h + 2 * m) * (w + 2 * m) / (h * w))
+    assert got.item() == pytest.approx(ref.item(), rel=1e-12)
+    (g_got,) = torch.autograd.grad(got, x)
+    (g_ref,) = torch.autograd.grad(ref, x)
+    assert torch.allclose(g_got, g_ref, rtol=1e-10, atol=1e-14)
+
+
+def test_cell_fraction_is_exact_on_constants_and_close_on_a_disk():
+    x, y = torch.full((1, 3, 30, 26), 0.3), torch.full((1, 3, 30, 26), 0.7)
+    cells = LOILoss(cell_fraction=1.0, border="renormalize")
+    assert cells(x, y).item() == pytest.approx(8 * 0.4, rel=1e-4)  # a constant field has exact cell means
+    target = _disk(torch.tensor(20.0, dtype=D64))
+    cx = torch.tensor(36.0, dtype=D64, requires_grad=True)
+    exact = loi_loss(_disk(cx), target)
+    (g_exact,) = torch.autograd.grad(exact, cx)
+    for fraction in (0.25, 0.5):
+        approx = loi_loss(_disk(cx), target, cell_fraction=fraction)
+        (g_approx,) = torch.autograd.grad(approx, cx)
+        assert approx.item() == pytest.approx(exact.item(), rel=0.02)
+        assert g_approx.item() == pytest.approx(g_exact.item(), rel=0.05)  # same direction and size
+    assert loi_loss(_disk(cx), target, cell_fraction=0.0).item() == exact.item()
+
+
+def test_cell_fraction_gradcheck_float64():
+    x = _rand(1, 1, 14, 11, lo=0.05, hi=0.95, dtype=D64).requires_grad_()
+    y = _rand(1, 1, 14, 11, seed=1, lo=0.05, hi=0.95, dtype=D64)
+    mask = _rand(1, 1, 14, 11, seed=2, dtype=D64) + 0.1
+    for low_memory in (False, True):
+        f = lambda t: loi_loss(t, y, alphas=(1, 3), sigmas=(0, 1), beta=0.25, cell_fraction=1.0, low_memory=low_memory, mask=mask)  # noqa: E731
+        assert torch.autograd.gradcheck(f, (x,))
+
+
 # --------------------------------------------------------------- gradients (6.1.6-8)
 def test_displaced_disk_l2_flat_loi_points_to_target():
     target = _disk(torch.tensor(20.0, dtype=D64))
@@ -311,6 +352,7 @@ def test_non_finite_input_names_the_tensor(bad, which):
         (dict(tail=-1), ValueError, "tail must be"),
         (dict(weights=[[1, 2]]), ValueError, "weights must have shape"),
         (dict(channels="rgb"), ValueError, "channels must be one of"),
+        (dict(cell_fraction=1.5), ValueError, "cell_fraction must be in"),
     ],
 )
 def test_bad_options(kwargs, error, match):

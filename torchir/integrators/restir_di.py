@@ -25,7 +25,9 @@
      - 0.9
    * - ``m_cap``
      - int
-     - cap on a neighbour's and a stored reservoir's M (D2); 0 = 20 * candidates.
+     - cap on a neighbour's and a stored reservoir's M (D2); 0 = 2 * candidates (measured: lower
+       gradient error than Bitterli's 20 * candidates, whose long memory keeps stale samples
+       across gradient steps; ``scripts/bench_restir.py`` compares both).
      - 0
    * - ``temporal`` / ``spatial``
      - bool
@@ -166,7 +168,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             raise ValueError(f"radius must be >= 0 (0 = automatic), got {self.radius}")
         self.normal_threshold = float(cfg["normal_threshold"])
         m_cap = _check_int("m_cap", cfg["m_cap"], 0)
-        self.m_cap = float(m_cap if m_cap > 0 else 20 * self.candidates)
+        self.m_cap = float(m_cap if m_cap > 0 else 2 * self.candidates)
         self.temporal, self.spatial = bool(cfg["temporal"]), bool(cfg["spatial"])
         self.burn_in = _check_int("burn_in", cfg["burn_in"], 0)
         if cfg["grad_paths"] not in ("shared", "decorrelated"):

@@ -20,14 +20,19 @@ from functools import lru_cache
 
 import torch
 
-__all__ = ["blur", "gaussian_matrix", "MIN_SCALE"]
+__all__ = ["blur", "blur_adjoint", "cell_means", "gaussian_matrix", "kernel_radius", "MIN_SCALE"]
 
 MIN_SCALE = 1e-3  # scales below this (pixels) are treated as 0: identity
 
 
+def kernel_radius(n: int, sigma: float, truncate: float = 3.0) -> int:
+    """Support radius (pixels) of the blur along an axis of ``n`` samples (0 for no blur)."""
+    return 0 if sigma < MIN_SCALE else min(math.ceil(truncate * sigma), max(n - 1, 0))
+
+
 @lru_cache(maxsize=64)
 def _gaussian_matrix(n: int, sigma: float, truncate: float, dtype: torch.dtype, device: str) -> torch.Tensor:
-    radius = min(math.ceil(truncate * sigma), n - 1)
+    radius = kernel_radius(n, sigma, truncate)
     i = torch.arange(n, dtype=torch.float64)
     d = i[:, None] - i[None, :]
     m = torch.exp(-0.5 * (d / sigma) ** 2) * (d.abs() <= radius)
@@ -69,3 +74,20 @@ def blur_adjoint(g: torch.Tensor, sigma: float, truncate: float = 3.0) -> torch.
     mh = gaussian_matrix(h, sigma, truncate, g.dtype, g.device)
     mw = gaussian_matrix(w, sigma, truncate, g.dtype, g.device)
     return mh.T @ g @ mw
+
+
+@lru_cache(maxsize=64)
+def _cell_matrices(n: int, sigma: float, cell: int, truncate: float, dtype: torch.dtype, device: str) -> tuple[torch.Tensor, torch.Tensor]:
+    cells = torch.arange(n) // cell
+    indicator = (cells[None, :] == torch.arange(-(-n // cell))[:, None]).to(torch.float64)  # (nc, n)
+    mean_rows = indicator @ _gaussian_matrix(n, sigma, truncate, torch.float64, "cpu") / indicator.sum(1, keepdim=True)
+    return mean_rows.to(dtype=dtype, device=device), indicator.to(dtype=dtype, device=device)
+
+
+def cell_means(n: int, sigma: float, cell: int, truncate: float = 3.0, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Blur, then average over cells of ``cell`` samples, as one ``(ceil(n / cell), n)`` matrix.
+
+    Returns ``(R, P)``: row ``c`` of ``R`` is the mean of the rows of :func:`gaussian_matrix` that
+    fall in cell ``c`` (so ``R_H @ x @ R_W^T`` is the exact per-cell mean of ``blur(x)``, at
+    ``ceil(n / cell) / n`` of the dense cost), and ``P`` is the 0/1 cell membership matrix."""
+    return _cell_matrices(int(n), float(sigma), int(cell), float(truncate), dtype, str(torch.device(device)))

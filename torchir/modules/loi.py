@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ._blur import MIN_SCALE, blur, blur_adjoint
+from ._blur import MIN_SCALE, blur, blur_adjoint, cell_means
 
 __all__ = ["loi_loss", "LOILoss", "LOI_PRESETS", "TRANSFORMS"]
 
@@ -82,6 +82,7 @@ class _Config:
     truncate: float
     reduction: str
     low_memory: bool
+    cell_fraction: float
 
     @property
     def n_terms(self) -> int:
@@ -114,7 +115,8 @@ def _weights(weights: Any, n_sigmas: int, n_alphas: int) -> tuple[tuple[float, .
 
 
 def _config(
-    alphas, sigmas, beta, value_range, tail, transform, channels, border, pad_frac, weights, relative, truncate, reduction, low_memory
+    alphas, sigmas, beta, value_range, tail, transform, channels, border, pad_frac, weights, relative, truncate, reduction, low_memory,
+    cell_fraction=0.0,
 ) -> _Config:
     alphas, sigmas = _scales("alphas", alphas), _scales("sigmas", sigmas)
     beta = float(beta)
@@ -145,6 +147,8 @@ def _config(
         raise ValueError(f"truncate must be > 0, got {truncate}")
     if reduction not in _REDUCTIONS:
         raise ValueError(f"reduction must be one of {_REDUCTIONS}, got {reduction!r}")
+    if not (isinstance(cell_fraction, (int, float)) and 0 <= float(cell_fraction) <= 1):
+        raise ValueError(f"cell_fraction must be in [0, 1], got {cell_fraction!r}")
     return _Config(
         alphas=alphas,
         sigmas=sigmas,
@@ -160,6 +164,7 @@ def _config(
         truncate=float(truncate),
         reduction=reduction,
         low_memory=bool(low_memory),
+        cell_fraction=float(cell_fraction),
     )
 
 
@@ -278,43 +283,128 @@ def _pixel_weights(b: int, h: int, w: int, m: int, mask: torch.Tensor | None, li
     return _pad(mask, m, 1.0) / norm
 
 
-def _scale_terms(d: torch.Tensor, alphas: Sequence[float], beta: float, pw: torch.Tensor, truncate: float) -> list[torch.Tensor]:
-    """E7 for each alpha: ``[(B,)]``, from ``d = Phi' - Phi^gt`` (E11: one blur per scale)."""
+@dataclass(frozen=True)
+class _Term:
+    """How one ``(sigma, alpha)`` term is evaluated on the padded canvas.
+
+    ``trim``: pixels dropped on every side of the canvas. With ``border="pad"`` the CDF
+    difference is exactly 0 farther than ``r_sigma`` from the image, so after the aperture blur
+    nothing is left beyond ``r_sigma + r_alpha``; the renormalised blur on a canvas cropped to
+    ``r_sigma + 2 r_alpha + 1`` therefore gives the same values (exact, only cheaper).
+    ``cell``: the term's ``|A_alpha * D|`` is evaluated on the means of ``cell x cell`` blocks
+    (1 = every pixel, exact; see ``cell_fraction``)."""
+
+    alpha: float
+    weight: float
+    trim: int
+    cell: int
+
+
+def _reach(scale: float, truncate: float) -> int:
+    return 0 if scale < MIN_SCALE else math.ceil(truncate * scale)
+
+
+def _plan(sigma: float, alphas: Sequence[float], weights: Sequence[float], margin: int, cfg: _Config) -> tuple[_Term, ...]:
+    r_s = _reach(sigma, cfg.truncate)
+    return tuple(
+        _Term(a, w, margin - min(margin, r_s + 2 * _reach(a, cfg.truncate) + 1), max(1, int(cfg.cell_fraction * a)))
+        for a, w in zip(alphas, weights)
+    )
+
+
+def _trim(x: torch.Tensor, k: int) -> torch.Tensor:
+    return x[..., k : x.shape[-2] - k, k : x.shape[-1] - k] if k else x
+
+
+def _aperture(d: torch.Tensor, t: _Term, truncate: float) -> torch.Tensor:
+    """``A_alpha * D`` on the term's canvas: per pixel, or per-cell means ``(.., H/cell, W/cell)``."""
+    if t.cell == 1:
+        return blur(d, t.alpha, truncate)
+    rh, _ = cell_means(d.shape[-2], t.alpha, t.cell, truncate, d.dtype, d.device)
+    rw, _ = cell_means(d.shape[-1], t.alpha, t.cell, truncate, d.dtype, d.device)
+    return rh @ d @ rw.T
+
+
+def _aperture_adjoint(g: torch.Tensor, t: _Term, shape: tuple[int, int], truncate: float) -> torch.Tensor:
+    if t.cell == 1:
+        return blur_adjoint(g, t.alpha, truncate)
+    rh, _ = cell_means(shape[0], t.alpha, t.cell, truncate, g.dtype, g.device)
+    rw, _ = cell_means(shape[1], t.alpha, t.cell, truncate, g.dtype, g.device)
+    return rh.T @ g @ rw
+
+
+def _term_weights(pw: torch.Tensor, t: _Term, truncate: float) -> torch.Tensor:
+    """Pixel weights on the term's canvas, summed per cell: ``(B, 1|C, H', W')``."""
+    pw = _trim(pw, t.trim)
+    if t.cell == 1:
+        return pw
+    _, ph = cell_means(pw.shape[-2], t.alpha, t.cell, truncate, pw.dtype, pw.device)
+    _, pw_ = cell_means(pw.shape[-1], t.alpha, t.cell, truncate, pw.dtype, pw.device)
+    return ph @ pw @ pw_.T
+
+
+def _scale_terms(d: torch.Tensor, trim: int, terms: Sequence[_Term], beta: float, pw: torch.Tensor, truncate: float) -> list[torch.Tensor]:
+    """E7 for each term: ``[(B,)]``, from ``d = Phi' - Phi^gt`` (E11: one blur per scale) on a
+    canvas already trimmed by ``trim``."""
     c = d.shape[1]
     out = []
-    for a in alphas:
-        w1 = blur(d, a, truncate).abs().sum(2) * beta  # (B, C, Hp, Wp): W1 per pixel and channel
-        out.append((w1 * pw).flatten(1).sum(1) / c)
+    for t in terms:
+        w1 = _aperture(_trim(d, t.trim - trim), t, truncate).abs().sum(2) * beta  # (B, C, H', W'): W1 per pixel/cell
+        out.append((w1 * _term_weights(pw, t, truncate)).flatten(1).sum(1) / c)
     return out
 
 
-class _LowMemorySigmaTerm(torch.autograd.Function):
-    """``sum_alpha w_alpha E(sigma, alpha)`` that stores only ``J_sigma'`` and recomputes the
-    point CDFs and blurs in backward (E10): memory ~5 big tensors instead of ~(3 + |A|)."""
+class _SigmaTerm(torch.autograd.Function):
+    """``sum_alpha w_alpha E(sigma, alpha)`` for one inner scale, with a hand-written backward.
+
+    Forward: ``u = (e_j - J_sigma') / beta``, ``D = Phi(u) - Phi^gt`` (E11), then per term
+    ``|A_alpha * D|`` summed over bins and weighted pixels (E7). Backward (E10):
+    ``dE/dD = sum_alpha A_alpha^T (sign(A_alpha * D) w pw)`` and
+    ``dE/dJ_sigma' = -sum_j phi(u_j) dE/dD_j / beta``. Fusing these saves most of the
+    elementwise passes autograd would make over the ``(B, C, K, H, W)`` tensors. It stores
+    ``u``, ``D`` and the blurred differences, or only ``J_sigma'`` with ``low_memory`` (then
+    everything is recomputed in backward). Not twice differentiable."""
 
     @staticmethod
-    def forward(ctx, j_sigma, z_target, edges, beta, alphas, weights, pw, truncate):  # noqa: D102
-        d = _point_cdf(j_sigma, edges, beta) - z_target
-        terms = _scale_terms(d, alphas, beta, pw, truncate)
-        ctx.save_for_backward(j_sigma, z_target, edges, pw)
-        ctx.beta, ctx.alphas, ctx.weights, ctx.truncate = beta, alphas, weights, truncate
-        return sum(w * t for w, t in zip(weights, terms))
+    def _differences(j_sigma, z_target, edges, beta, trim, terms, truncate):
+        u = (edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)).div_(beta)
+        d = torch.special.ndtr(u).sub_(z_target)
+        outs = [_aperture(_trim(d, t.trim - trim), t, truncate) for t in terms]
+        return u, d, outs
 
     @staticmethod
-    def backward(ctx, grad):  # noqa: D102
-        j_sigma, z_target, edges, pw = ctx.saved_tensors
-        beta = ctx.beta
-        z = (edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)) / beta
-        d = torch.special.ndtr(z) - z_target
+    def forward(ctx, j_sigma, z_target, edges, beta, trim, terms, pw, truncate, low_memory):  # noqa: D102
+        u, d, outs = _SigmaTerm._differences(j_sigma, z_target, edges, beta, trim, terms, truncate)
         c = d.shape[1]
-        scale = (grad.view(-1, 1, 1, 1) * pw / c * beta).unsqueeze(2)  # (B, 1|C, 1, Hp, Wp)
+        total = j_sigma.new_zeros(j_sigma.shape[0])
+        for t, out in zip(terms, outs):
+            w1 = out.abs().sum(2)  # (B, C, H', W')
+            total += (w1 * _term_weights(pw, t, truncate)).flatten(1).sum(1) * (t.weight * beta / c)
+        if low_memory:
+            ctx.save_for_backward(j_sigma, z_target, edges, pw)
+        else:
+            ctx.save_for_backward(j_sigma, z_target, edges, pw, u, d, *outs)
+        ctx.beta, ctx.trim, ctx.terms, ctx.truncate, ctx.low_memory = beta, trim, terms, truncate, low_memory
+        return total
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):  # noqa: D102
+        j_sigma, z_target, edges, pw, *stored = ctx.saved_tensors
+        beta, trim, terms, truncate = ctx.beta, ctx.trim, ctx.terms, ctx.truncate
+        if ctx.low_memory:
+            u, d, outs = _SigmaTerm._differences(j_sigma, z_target, edges, beta, trim, terms, truncate)
+        else:
+            u, d, *outs = stored
+        c = d.shape[1]
         grad_d = torch.zeros_like(d)
-        for a, w in zip(ctx.alphas, ctx.weights):
-            if w:
-                grad_d += blur_adjoint(torch.sign(blur(d, a, ctx.truncate)) * (w * scale), a, ctx.truncate)
-        phi = torch.exp(-0.5 * z * z) * (1.0 / math.sqrt(2 * math.pi))
-        grad_j = -(phi * grad_d).sum(2) / beta  # d Phi((e - J)/beta) / dJ = -phi / beta
-        return grad_j, None, None, None, None, None, None, None
+        for t, out in zip(terms, outs):
+            scale = (grad.view(-1, 1, 1, 1) * _term_weights(pw, t, truncate)).mul_(t.weight * beta / c).unsqueeze(2)
+            region = _trim(grad_d, t.trim - trim)
+            region += _aperture_adjoint(torch.sign(out).mul_(scale), t, region.shape[-2:], truncate)
+        phi = u.square().mul_(-0.5).exp_()  # sqrt(2 pi) phi(u); the constant goes below
+        grad_j = phi.mul_(grad_d).sum(2).mul_(-1.0 / (beta * math.sqrt(2 * math.pi)))  # d Phi(u) / dJ = -phi(u) / beta
+        return grad_j, None, None, None, None, None, None, None, None
 
 
 @dataclass
@@ -327,6 +417,8 @@ class _Prepared:
     alphas: tuple[float, ...]
     shape: tuple[int, int, int, int]  # of the unpadded (transformed) images
     margin: int
+    plans: tuple[tuple[_Term, ...], ...]  # per sigma, every alpha (weight 0 included)
+    trims: tuple[int, ...]  # per sigma: the canvas trim its CDF difference is computed on
 
 
 def _prepare_one(name: str, x: torch.Tensor, cfg: _Config, warned: set[str] | None) -> torch.Tensor:
@@ -350,6 +442,8 @@ def _prepare(rendered: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | 
     m = _margin(h, w, cfg)
     lo = cfg.value_range[0]
     sigmas, alphas = _pixel_scales(cfg, h, w)
+    plans = tuple(_plan(s, alphas, w_row, m, cfg) for s, w_row in zip(sigmas, cfg.weights))
+    trims = tuple(min((t.trim for t in plan if t.weight), default=m) for plan in plans)
     return _Prepared(
         rendered=_pad(jr, m, lo),
         target=_pad(jt, m, lo),
@@ -359,26 +453,26 @@ def _prepare(rendered: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | 
         alphas=alphas,
         shape=(b, c, h, w),
         margin=m,
+        plans=plans,
+        trims=trims,
     )
 
 
-def _target_cdfs(p: _Prepared, cfg: _Config) -> list[torch.Tensor]:
-    return [_point_cdf(blur(p.target, s, cfg.truncate), p.edges, cfg.beta) for s in p.sigmas]
+def _target_cdfs(p: _Prepared, cfg: _Config, trims: Sequence[int] | None = None) -> list[torch.Tensor]:
+    """The reference's point CDFs per sigma, on the canvas trimmed by ``trims`` (default: the plan's)."""
+    trims = p.trims if trims is None else trims
+    return [_point_cdf(_trim(blur(p.target, s, cfg.truncate), k), p.edges, cfg.beta) for s, k in zip(p.sigmas, trims)]
 
 
 def _per_image(p: _Prepared, cfg: _Config, z_targets: list[torch.Tensor]) -> torch.Tensor:
     """E8: ``sum_{sigma, alpha} w E(sigma, alpha)`` per batch item, ``(B,)``."""
     total = p.rendered.new_zeros(p.shape[0])
-    for s, zt, w_row in zip(p.sigmas, z_targets, cfg.weights):
-        j_sigma = blur(p.rendered, s, cfg.truncate)  # E1
-        if cfg.low_memory and torch.is_grad_enabled() and j_sigma.requires_grad:
-            alphas = tuple(a for a, w in zip(p.alphas, w_row) if w)
-            weights = tuple(w for w in w_row if w)
-            total = total + _LowMemorySigmaTerm.apply(j_sigma, zt, p.edges, cfg.beta, alphas, weights, p.pw, cfg.truncate)
-        else:
-            d = _point_cdf(j_sigma, p.edges, cfg.beta) - zt  # E11
-            terms = _scale_terms(d, [a for a, w in zip(p.alphas, w_row) if w], cfg.beta, p.pw, cfg.truncate)
-            total = total + sum(w * t for w, t in zip((w for w in w_row if w), terms))
+    for s, zt, plan, trim in zip(p.sigmas, z_targets, p.plans, p.trims):
+        terms = tuple(t for t in plan if t.weight)
+        if not terms:
+            continue
+        j_sigma = _trim(blur(p.rendered, s, cfg.truncate), trim)  # E1
+        total = total + _SigmaTerm.apply(j_sigma, zt, p.edges, cfg.beta, trim, terms, p.pw, cfg.truncate, cfg.low_memory)
     return total
 
 
@@ -404,6 +498,7 @@ def loi_loss(
     reduction: str = "mean",
     mask: torch.Tensor | None = None,
     low_memory: bool = False,
+    cell_fraction: float = 0.0,
 ) -> torch.Tensor:
     r"""Locally orderless images loss (paper 003, Eq. 1-5): W1 between local histograms.
 
@@ -431,6 +526,12 @@ def loi_loss(
         reduction: ``"mean"`` / ``"sum"`` over the batch, or ``"none"`` for ``(B,)``.
         mask: ``(B, 1|C, H, W)`` non-negative per-pixel weights of the W1 terms.
         low_memory: recompute the big tensors in backward instead of storing them.
+        cell_fraction: speed for accuracy. Each ``alpha`` term takes ``|A_alpha * D|`` on the
+            exact means of ``floor(cell_fraction * alpha)``-pixel cells instead of on every
+            pixel (0 = every pixel, the exact loss). The blurred field is smooth at scale
+            ``alpha``, so only cells that straddle one of its zero crossings differ; 0.5 makes
+            the large-``alpha`` terms several times cheaper (``scripts/bench_loi.py`` measures
+            the speed and the loss/gradient error).
 
     Returns:
         A scalar (``(B,)`` for ``reduction="none"``). Each term is a mean over channels and
@@ -444,7 +545,7 @@ def loi_loss(
         >>> x, y = torch.rand(1, 3, 32, 32, requires_grad=True), torch.rand(1, 3, 32, 32)
         >>> loi_loss(x, y, alphas=(1, 5), sigmas=(1,)).backward()
     """
-    cfg = _config(alphas, sigmas, beta, value_range, tail, transform, channels, border, pad_frac, weights, relative, truncate, reduction, low_memory)
+    cfg = _config(alphas, sigmas, beta, value_range, tail, transform, channels, border, pad_frac, weights, relative, truncate, reduction, low_memory, cell_fraction)
     p = _prepare(rendered, target, mask, cfg)
     return _reduce(_per_image(p, cfg, _target_cdfs(p, cfg)), cfg.reduction)
 
@@ -485,9 +586,12 @@ class LOILoss(nn.Module):
         reduction: str = "mean",
         cache_target: bool | int = True,
         low_memory: bool = False,
+        cell_fraction: float = 0.0,
     ) -> None:
         super().__init__()
-        self.cfg = _config(alphas, sigmas, beta, value_range, tail, transform, channels, border, pad_frac, weights, relative, truncate, reduction, low_memory)
+        self.cfg = _config(
+            alphas, sigmas, beta, value_range, tail, transform, channels, border, pad_frac, weights, relative, truncate, reduction, low_memory, cell_fraction
+        )
         if isinstance(cache_target, bool):
             cache_target = int(cache_target)
         if not isinstance(cache_target, int) or cache_target < 0:
@@ -532,7 +636,7 @@ class LOILoss(nn.Module):
         return (
             f"alphas={c.alphas}, sigmas={c.sigmas}, beta={c.beta}, value_range={c.value_range}, tail={c.tail}, "
             f"transform={c.transform!r}, border={c.border!r}, relative={c.relative}, reduction={c.reduction!r}, "
-            f"low_memory={c.low_memory}"
+            f"low_memory={c.low_memory}, cell_fraction={c.cell_fraction}"
         )
 
     # ------------------------------------------------------------------------ forward
@@ -577,9 +681,10 @@ class LOILoss(nn.Module):
         with torch.no_grad():
             p = _prepare(rendered, target, mask, self.cfg, self._warned)
             out = {}
-            for s_cfg, s, zt in zip(self.cfg.sigmas, p.sigmas, _target_cdfs(p, self.cfg)):
-                d = _point_cdf(blur(p.rendered, s, self.cfg.truncate), p.edges, self.cfg.beta) - zt
-                for a_cfg, v in zip(self.cfg.alphas, _scale_terms(d, p.alphas, self.cfg.beta, p.pw, self.cfg.truncate)):
+            trims = [min(t.trim for t in plan) for plan in p.plans]  # every alpha, weighted or not
+            for s_cfg, s, zt, plan, k in zip(self.cfg.sigmas, p.sigmas, _target_cdfs(p, self.cfg, trims), p.plans, trims):
+                d = _point_cdf(_trim(blur(p.rendered, s, self.cfg.truncate), k), p.edges, self.cfg.beta) - zt
+                for a_cfg, v in zip(self.cfg.alphas, _scale_terms(d, k, plan, self.cfg.beta, p.pw, self.cfg.truncate)):
                     out[(s_cfg, a_cfg)] = v.mean()
             return out
 
