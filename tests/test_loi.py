@@ -210,8 +210,8 @@ def test_low_memory_matches_autograd_and_estimates_less_memory():
     assert v.item() == pytest.approx(ref(x, y).item(), rel=1e-6)
     assert torch.allclose(g_ref, g_lm, rtol=1e-4, atol=1e-9)
     assert lm.memory_estimate((2, 3, 256, 256)) < ref.memory_estimate((2, 3, 256, 256))
-    # estimate: 4 bytes * (3 + 4) * 2 sigmas * B C K Hp Wp (+ cached target) for the default
-    assert ref.memory_estimate((1, 3, 64, 64)) == 4 * (7 * 2 + 2) * 3 * 15 * 96 * 96
+    # estimate: 4 bytes * (2 + 4) * 2 sigmas * B C K Hp Wp (+ cached target) for the default
+    assert ref.memory_estimate((1, 3, 64, 64)) == 4 * (6 * 2 + 2) * 3 * 15 * 96 * 96
 
 
 # ----------------------------------------------------------------- batch, reduction, caching

@@ -366,15 +366,14 @@ class _SigmaTerm(torch.autograd.Function):
     everything is recomputed in backward). Not twice differentiable."""
 
     @staticmethod
-    def _differences(j_sigma, z_target, edges, beta, trim, terms, truncate):
+    def _difference(j_sigma, z_target, edges, beta):
         u = (edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)).div_(beta)
-        d = torch.special.ndtr(u).sub_(z_target)
-        outs = [_aperture(_trim(d, t.trim - trim), t, truncate) for t in terms]
-        return u, d, outs
+        return u, torch.special.ndtr(u).sub_(z_target)  # E11
 
     @staticmethod
     def forward(ctx, j_sigma, z_target, edges, beta, trim, terms, pw, truncate, low_memory):  # noqa: D102
-        u, d, outs = _SigmaTerm._differences(j_sigma, z_target, edges, beta, trim, terms, truncate)
+        u, d = _SigmaTerm._difference(j_sigma, z_target, edges, beta)
+        outs = [_aperture(_trim(d, t.trim - trim), t, truncate) for t in terms]
         c = d.shape[1]
         total = j_sigma.new_zeros(j_sigma.shape[0])
         for t, out in zip(terms, outs):
@@ -393,12 +392,14 @@ class _SigmaTerm(torch.autograd.Function):
         j_sigma, z_target, edges, pw, *stored = ctx.saved_tensors
         beta, trim, terms, truncate = ctx.beta, ctx.trim, ctx.terms, ctx.truncate
         if ctx.low_memory:
-            u, d, outs = _SigmaTerm._differences(j_sigma, z_target, edges, beta, trim, terms, truncate)
+            u, d = _SigmaTerm._difference(j_sigma, z_target, edges, beta)
+            outs = [None] * len(terms)  # recomputed one at a time below
         else:
             u, d, *outs = stored
         c = d.shape[1]
         grad_d = torch.zeros_like(d)
         for t, out in zip(terms, outs):
+            out = _aperture(_trim(d, t.trim - trim), t, truncate) if out is None else out
             scale = (grad.view(-1, 1, 1, 1) * _term_weights(pw, t, truncate)).mul_(t.weight * beta / c).unsqueeze(2)
             region = _trim(grad_d, t.trim - trim)
             region += _aperture_adjoint(torch.sign(out).mul_(scale), t, region.shape[-2:], truncate)
@@ -710,8 +711,9 @@ class LOILoss(nn.Module):
 
     def memory_estimate(self, shape: Sequence[int], dtype: torch.dtype = torch.float32) -> int:
         """Approximate peak bytes of one forward + backward at image ``shape`` ((B,)C,H,W):
-        autograd keeps ~(3 + |alphas|) ``(B, C, K, Hp, Wp)`` tensors per sigma (low-memory
-        mode: ~5 in all), plus the cached target CDFs (one per sigma)."""
+        backward keeps ~(2 + |alphas|) ``(B, C, K, Hp, Wp)`` tensors per sigma (low-memory
+        mode: ~5 in all), plus the cached target CDFs (one per sigma). An upper bound: the
+        small-alpha terms of ``border="pad"`` and ``cell_fraction`` need less."""
         shape = tuple(shape) if len(shape) == 4 else (1, *shape)
         b, c, h, w = shape
         c = 1 if self.cfg.channels == "luminance" else c
@@ -719,4 +721,4 @@ class LOILoss(nn.Module):
         k = len(_edges(self.cfg, torch.float64, torch.device("cpu")))
         big = b * c * k * (h + 2 * m) * (w + 2 * m) * torch.empty((), dtype=dtype).element_size()
         n_s, n_a = len(self.cfg.sigmas), len(self.cfg.alphas)
-        return big * ((5 if self.cfg.low_memory else (3 + n_a) * n_s) + n_s)
+        return big * ((5 if self.cfg.low_memory else (2 + n_a) * n_s) + n_s)
