@@ -20,19 +20,14 @@ from functools import lru_cache
 
 import torch
 
-__all__ = ["blur", "blur_adjoint", "cell_means", "gaussian_matrix", "kernel_radius", "MIN_SCALE"]
+__all__ = ["blur", "blur_adjoint", "cell_means", "gaussian_matrix", "MIN_SCALE"]
 
 MIN_SCALE = 1e-3  # scales below this (pixels) are treated as 0: identity
 
 
-def kernel_radius(n: int, sigma: float, truncate: float = 3.0) -> int:
-    """Support radius (pixels) of the blur along an axis of ``n`` samples (0 for no blur)."""
-    return 0 if sigma < MIN_SCALE else min(math.ceil(truncate * sigma), max(n - 1, 0))
-
-
 @lru_cache(maxsize=64)
 def _gaussian_matrix(n: int, sigma: float, truncate: float, dtype: torch.dtype, device: str) -> torch.Tensor:
-    radius = kernel_radius(n, sigma, truncate)
+    radius = min(math.ceil(truncate * sigma), n - 1)
     i = torch.arange(n, dtype=torch.float64)
     d = i[:, None] - i[None, :]
     m = torch.exp(-0.5 * (d / sigma) ** 2) * (d.abs() <= radius)

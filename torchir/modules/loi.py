@@ -343,15 +343,16 @@ def _term_weights(pw: torch.Tensor, t: _Term, truncate: float) -> torch.Tensor:
     return ph @ pw @ pw_.T
 
 
+def _term_value(out: torch.Tensor, t: _Term, beta: float, pw: torch.Tensor, truncate: float) -> torch.Tensor:
+    """E7, unweighted, ``(B,)``, from the term's blurred difference ``out = A_alpha * D``."""
+    w1 = out.abs().sum(2) * beta  # (B, C, H', W'): W1 per pixel/cell and channel
+    return (w1 * _term_weights(pw, t, truncate)).flatten(1).sum(1) / out.shape[1]
+
+
 def _scale_terms(d: torch.Tensor, trim: int, terms: Sequence[_Term], beta: float, pw: torch.Tensor, truncate: float) -> list[torch.Tensor]:
     """E7 for each term: ``[(B,)]``, from ``d = Phi' - Phi^gt`` (E11: one blur per scale) on a
     canvas already trimmed by ``trim``."""
-    c = d.shape[1]
-    out = []
-    for t in terms:
-        w1 = _aperture(_trim(d, t.trim - trim), t, truncate).abs().sum(2) * beta  # (B, C, H', W'): W1 per pixel/cell
-        out.append((w1 * _term_weights(pw, t, truncate)).flatten(1).sum(1) / c)
-    return out
+    return [_term_value(_aperture(_trim(d, t.trim - trim), t, truncate), t, beta, pw, truncate) for t in terms]
 
 
 class _SigmaTerm(torch.autograd.Function):
@@ -374,11 +375,7 @@ class _SigmaTerm(torch.autograd.Function):
     def forward(ctx, j_sigma, z_target, edges, beta, trim, terms, pw, truncate, low_memory):  # noqa: D102
         u, d = _SigmaTerm._difference(j_sigma, z_target, edges, beta)
         outs = [_aperture(_trim(d, t.trim - trim), t, truncate) for t in terms]
-        c = d.shape[1]
-        total = j_sigma.new_zeros(j_sigma.shape[0])
-        for t, out in zip(terms, outs):
-            w1 = out.abs().sum(2)  # (B, C, H', W')
-            total += (w1 * _term_weights(pw, t, truncate)).flatten(1).sum(1) * (t.weight * beta / c)
+        total = sum(t.weight * _term_value(out, t, beta, pw, truncate) for t, out in zip(terms, outs))
         if low_memory:
             ctx.save_for_backward(j_sigma, z_target, edges, pw)
         else:
