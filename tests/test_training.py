@@ -122,7 +122,7 @@ def test_config_errors_name_the_key(tmp_path, capsys, override, message):
         (["--model.spp_grad", "0"], "model.spp_grad must be >= 1"),
         (["--data.views", "[]"], "data.views is empty"),
         (["--data.views", "[3]"], "has 1 sensor"),
-        (["--data.targets", "[missing.exr]"], "not found: 'missing.exr'"),
+        (["--data.targets", "[missing.exr]"], "missing.exr'"),
     ],
 )
 def test_bad_inputs_give_clear_errors(tmp_path, capsys, override, message):

@@ -3,7 +3,8 @@
 ``torchir fit --config run.yaml [--trainer.max_steps 50 ...]``: an inverse-rendering run
 (LightningCLI, see :mod:`torchir.training.cli`); ``torchir info``: backend, versions and
 built-in scenes; ``torchir bench <suite> [--quick]``: benchmarks and their report
-(:mod:`torchir.bench`).
+(:mod:`torchir.bench`); ``torchir export CKPT [--out DIR]``: a checkpoint's recovered values
+(``result.yaml``, textures as EXR) and final images, as a run writes them at its end.
 """
 from __future__ import annotations
 
@@ -18,8 +19,29 @@ def _info(_: argparse.Namespace) -> int:
 
     print(f"torchir {torchir.__version__}  torch {torch.__version__}  {torchir.backend.describe()}")
     print("built-in scenes:")
-    for name, description in torchir.scenes.available().items():
-        print(f"  {name:12s} {description}")
+    scenes = torchir.scenes.available()
+    width = max(map(len, scenes))
+    for name, description in scenes.items():
+        print(f"  {name:{width}s}  {description}")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import torch
+
+    from .training import InverseRenderingModule
+    from .training.results import write_results
+
+    path = Path(args.checkpoint)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {str(path)!r}")
+    step = int(torch.load(path, map_location="cpu", weights_only=False).get("global_step", 0))
+    module = InverseRenderingModule.load_from_checkpoint(path, map_location="cpu", preview_spp=args.spp)
+    out = Path(args.out) if args.out else path.parent.parent / "export"
+    result = write_results(module, out, step, images=not args.no_images)
+    print(f"[torchir] step {step}: {result}" + ("" if args.no_images else f" and {out / 'images'}"))
     return 0
 
 
@@ -52,12 +74,18 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--quick", action="store_true", help="a few-minute run of each suite instead of the full one")
     bench.add_argument("--out", default="results/bench", help="report folder (default results/bench)")
     bench.set_defaults(run=_bench)
+    export = sub.add_parser("export", help="recovered values (result.yaml, textures as EXR) and final images of a checkpoint")
+    export.add_argument("checkpoint", help="a .ckpt file written by torchir fit")
+    export.add_argument("--out", default=None, help="output folder (default: <run folder>/export)")
+    export.add_argument("--spp", type=int, default=64, help="samples per pixel of the final images (default 64)")
+    export.add_argument("--no-images", action="store_true", help="write result.yaml and parameter files only")
+    export.set_defaults(run=_export)
     for command in LIGHTNING_COMMANDS:
         sub.add_parser(command, help=f"Lightning {command} of an inverse-rendering run (--config run.yaml)", add_help=False)
     args = parser.parse_args(argv)
     try:
         return args.run(args)
-    except RuntimeError as error:  # e.g. LLVMError: a message, not a traceback
+    except (RuntimeError, FileNotFoundError, ValueError) as error:  # e.g. LLVMError: a message, not a traceback
         print(f"torchir: error: {error}", file=sys.stderr)
         return 1
 

@@ -1,9 +1,47 @@
-"""Writing torch images for people to look at: tone mapping and PNG output."""
+"""Image files <-> torch linear radiance, decided in one place.
+
+Every image torchir reads (targets, textures) or writes (previews, results) goes through
+:func:`read_image` and :func:`write_image`, so that a value means linear radiance on the torch
+side whatever the file's encoding:
+
+==================================  =========================  ==========================
+file                                stored as                  ``colorspace="auto"``
+==================================  =========================  ==========================
+``.exr``, ``.hdr``, ``.pfm``        float, linear              read/written as is
+``.png`` (8/16 bit), ``.jpg``       integers, sRGB-encoded     sRGB curve undone / applied
+==================================  =========================  ==========================
+
+``colorspace="srgb"`` or ``"linear"`` overrides what the file says (e.g. a PNG that holds
+linear data, such as a normal or roughness map: ``"linear"``). Decoding is Mitsuba's own
+(``mi.Bitmap``), applied once.
+"""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
+import numpy as np
 import torch
+
+__all__ = ["read_image", "write_image", "to_srgb", "save_png", "COLORSPACES", "LINEAR_SUFFIXES", "ENCODED_SUFFIXES"]
+
+ColorSpace = Literal["auto", "srgb", "linear"]
+COLORSPACES = ("auto", "srgb", "linear")
+LINEAR_SUFFIXES = (".exr", ".hdr", ".pfm")
+ENCODED_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def _check_colorspace(colorspace: str) -> None:
+    if colorspace not in COLORSPACES:
+        raise ValueError(f"colorspace must be one of {COLORSPACES}, got {colorspace!r}")
+
+
+def _check_suffix(path: Path) -> None:
+    if path.suffix.lower() not in LINEAR_SUFFIXES + ENCODED_SUFFIXES:
+        raise ValueError(
+            f"{str(path)!r}: unsupported image type {path.suffix!r}; use one of "
+            f"{', '.join(LINEAR_SUFFIXES + ENCODED_SUFFIXES)}"
+        )
 
 
 def to_srgb(image: torch.Tensor, exposure: float = 1.0) -> torch.Tensor:
@@ -12,17 +50,89 @@ def to_srgb(image: torch.Tensor, exposure: float = 1.0) -> torch.Tensor:
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.pow(1.0 / 2.4) - 0.055)
 
 
-def save_png(path: str | Path, image: torch.Tensor, exposure: float = 1.0) -> Path:
-    """Tone-map a linear ``(C, H, W)`` image and write it as an 8-bit PNG; returns the path."""
-    import matplotlib
+def read_image(path: str | Path, colorspace: ColorSpace = "auto") -> torch.Tensor:
+    """Read an image file as linear radiance, ``(C, H, W)`` float32 with ``C`` in {1, 3}.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Args:
+        path: an EXR/HDR/PFM (linear) or PNG/JPEG (8/16-bit, sRGB-encoded) file.
+        colorspace: ``"auto"`` (the file's own encoding, table above), ``"srgb"`` (undo the
+            sRGB curve whatever the file says) or ``"linear"`` (take the stored values as is).
 
-    if image.dim() != 3 or image.shape[0] not in (1, 3):
-        raise ValueError(f"expected (C, H, W) with C in (1, 3), got {tuple(image.shape)}")
+    An alpha channel is dropped when it is fully opaque and refused otherwise (torchir
+    compares radiance; a transparent pixel has none to compare).
+    """
+    import mitsuba as mi
+
+    from . import backend
+
+    _check_colorspace(colorspace)
     path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {str(path)!r} (resolved to {path.resolve()})")
+    _check_suffix(path)
+    backend.variant()
+    bitmap = mi.Bitmap(str(path))
+    if colorspace != "auto":
+        bitmap.set_srgb_gamma(colorspace == "srgb")
+    formats = mi.Bitmap.PixelFormat
+    has_alpha = bitmap.has_alpha()
+    grey = bitmap.pixel_format() in (formats.Y, formats.YA)
+    target_format = (formats.YA if has_alpha else formats.Y) if grey else (formats.RGBA if has_alpha else formats.RGB)
+    # srgb_gamma=False asks for linear output: Mitsuba undoes the curve iff the bitmap is sRGB
+    array = np.array(bitmap.convert(target_format, mi.Struct.Type.Float32, srgb_gamma=False), dtype=np.float32)
+    if array.ndim == 2:
+        array = array[..., None]
+    if has_alpha:
+        alpha = array[..., -1]
+        if float(alpha.min()) < 1.0 - 1e-6:
+            raise ValueError(
+                f"{str(path)!r} has an alpha channel with transparent pixels (min alpha {alpha.min():.3g}); "
+                f"torchir needs radiance everywhere: flatten it onto a background and save it without alpha"
+            )
+        array = array[..., :-1]
+    return torch.from_numpy(np.ascontiguousarray(array)).permute(2, 0, 1).contiguous()
+
+
+def write_image(path: str | Path, image: torch.Tensor, colorspace: ColorSpace = "auto", exposure: float = 1.0) -> Path:
+    """Write linear radiance ``(C, H, W)`` (``C`` in {1, 3}) so that :func:`read_image` gives it back.
+
+    EXR/HDR/PFM hold the values as float (``exposure`` ignored); PNG/JPEG hold them scaled by
+    ``exposure``, clipped to [0, 1], sRGB-encoded (``colorspace="linear"``: not encoded) and
+    quantised to 8 bits. Returns the path.
+    """
+    import mitsuba as mi
+
+    from . import backend
+
+    _check_colorspace(colorspace)
+    if not isinstance(image, torch.Tensor) or image.dim() != 3 or image.shape[0] not in (1, 3):
+        shape = tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__
+        raise ValueError(f"expected an image (C, H, W) with C in (1, 3), got {shape}")
+    path = Path(path)
+    _check_suffix(path)
+    if not bool(torch.isfinite(image).all()):
+        raise ValueError(f"image for {str(path)!r} has NaN/Inf pixels")
+    backend.variant()
     path.parent.mkdir(parents=True, exist_ok=True)
-    rgb = to_srgb(image, exposure).expand(3, -1, -1).permute(1, 2, 0).cpu().numpy()
-    plt.imsave(path, rgb)
+    array = np.ascontiguousarray(image.detach().float().permute(1, 2, 0).cpu().numpy())
+    formats = mi.Bitmap.PixelFormat
+    pixel_format = formats.Y if array.shape[-1] == 1 else formats.RGB
+    encoded = path.suffix.lower() in ENCODED_SUFFIXES
+    srgb = colorspace == "srgb" or (colorspace == "auto" and encoded)
+    if encoded:
+        array = np.clip(array * exposure, 0.0, 1.0)
+    bitmap = mi.Bitmap(array, pixel_format)
+    if encoded:
+        bitmap = bitmap.convert(pixel_format, mi.Struct.Type.UInt8, srgb_gamma=srgb)
+    elif srgb:  # a float file that the caller wants sRGB-encoded (rare, but symmetric with read_image)
+        bitmap = bitmap.convert(pixel_format, mi.Struct.Type.Float32, srgb_gamma=True)
+    bitmap.write(str(path))
     return path
+
+
+def save_png(path: str | Path, image: torch.Tensor, exposure: float = 1.0) -> Path:
+    """Tone-map a linear ``(C, H, W)`` image and write it as an 8-bit sRGB PNG; returns the path."""
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise ValueError(f"save_png writes .png files, got {str(path)!r}")
+    return write_image(path, image, exposure=exposure)

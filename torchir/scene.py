@@ -17,6 +17,7 @@ own values before their backward pass, so interleaved renders differentiate corr
 """
 from __future__ import annotations
 
+import contextlib
 import difflib
 import math
 import os
@@ -24,7 +25,7 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
 import drjit as dr
 import mitsuba as mi
@@ -50,13 +51,23 @@ class ParameterInfo:
 @dataclass(frozen=True)
 class DerivedParameter:
     """A torch-side reparameterisation: ``name`` is optimised, ``target`` (a Mitsuba key) is
-    bound to ``to_target(value)``, computed in torch before the Dr.Jit boundary."""
+    bound to ``to_target(*values of inputs)``, computed in torch before the Dr.Jit boundary.
+
+    Several derived parameters may set one target together (a pose: translation, rotation and
+    scale of one shape): they share ``to_target`` and ``inputs``; inputs a render does not give
+    take their load-time ``value``. Declare them with :meth:`Scene.derive` or
+    :func:`torchir.derived.rigid_transform`."""
 
     name: str
     target: str
     shape: tuple[int, ...]
-    to_target: Callable[[torch.Tensor], torch.Tensor]
+    to_target: Callable[..., torch.Tensor]
     value: tuple[float, ...]  # the load-time value (flattened)
+    inputs: tuple[str, ...] = ()  # every input of to_target, in call order; () means (name,)
+
+    @property
+    def group(self) -> tuple[str, ...]:
+        return self.inputs or (self.name,)
 
 
 # Keys whose change moves visibility edges. (Mitsuba also flags BSDF roughness "discontinuous",
@@ -86,8 +97,15 @@ def _is_flat_float(value: Any) -> bool:
     )
 
 
+def _is_transform(value: Any) -> bool:
+    """A 4x4 (affine) transform such as a shape's ``to_world``, bound from torch as ``(4, 4)``."""
+    return type(value).__name__ in ("Transform4f", "AffineTransform4f")
+
+
 def _torch_shape(value: Any) -> tuple[tuple[int, ...], bool]:
     """(torch shape, bindable) of a Mitsuba parameter value."""
+    if _is_transform(value):
+        return (4, 4), dr.width(value.matrix) == 1
     if dr.is_tensor_v(value):
         return tuple(value.shape), dr.type_v(value) == dr.VarType.Float32
     if _is_flat_float(value):
@@ -109,6 +127,49 @@ def _same_layout(got: tuple[int, ...], expected: tuple[int, ...]) -> bool:
     """Shapes match, up to leading/trailing singleton axes ((3,) vs (1, 3), () vs (1,))."""
     squeeze = lambda s: tuple(d for d in s if d != 1)  # noqa: E731
     return got == expected or (squeeze(got) == squeeze(expected) and math.prod(got) == math.prod(expected))
+
+
+TextureStorage = Literal["float", "file"]
+
+
+def _check_texture_storage(texture_storage: str) -> None:
+    if texture_storage not in ("float", "file"):
+        raise ValueError(f"texture_storage must be 'float' or 'file', got {texture_storage!r}")
+
+
+@contextlib.contextmanager
+def _resolving_from(folder: Path):
+    """Mitsuba's file resolver looks in ``folder`` first for the duration."""
+    saved = mi.FileResolver(mi.file_resolver())
+    mi.file_resolver().prepend(str(folder.resolve()))
+    try:
+        yield
+    finally:
+        mi.Thread.thread().set_file_resolver(saved)
+
+
+def _float_bitmaps(node: Any) -> Any:
+    """A copy of a scene dict in which every file-backed ``bitmap`` texture without a ``format``
+    stores float32 (``format: "variant"``)."""
+    if not isinstance(node, Mapping):
+        return node
+    out = {k: _float_bitmaps(v) for k, v in node.items()}
+    if out.get("type") == "bitmap" and "filename" in out and "format" not in out:
+        out["format"] = "variant"
+    return out
+
+
+def _unbindable_hint(name: str, type_name: str) -> str:
+    """What to do instead of binding parameter ``name`` of Mitsuba type ``type_name``."""
+    if type_name in ("TensorXu8", "TensorXf16"):
+        return (
+            f"it is a texture stored as {type_name[7:]} (an 8/16-bit image file): load the scene with "
+            f"texture_storage='float' (the default of Scene.from_file/from_dict; torchir fit uses it), or give "
+            f"the bitmap format=\"variant\" in the scene"
+        )
+    if name.endswith(".faces") or type_name.startswith(("UInt", "Int")) or "Xu" in type_name or "Xi" in type_name:
+        return "it holds integers (e.g. mesh faces or indices), which have no gradient: optimise vertex_positions or a pose instead"
+    return "torchir binds float textures/tensors, float arrays, colours, points, vectors and 4x4 transforms"
 
 
 class Scene:
@@ -159,27 +220,49 @@ class Scene:
         return scene
 
     @classmethod
-    def from_file(cls, path: str | os.PathLike, optimize: bool = False, **scene_args: Any) -> Scene:
+    def from_file(
+        cls, path: str | os.PathLike, optimize: bool = False, texture_storage: TextureStorage = "float", **scene_args: Any
+    ) -> Scene:
         """Load a Mitsuba 3 XML scene file.
 
         Args:
             path: the ``.xml`` file.
             optimize: let Mitsuba merge shapes (off by default so every shape keeps its own,
                 addressable parameters).
+            texture_storage: ``"float"`` (default): every bitmap texture without an explicit
+                ``format`` is stored as float32 linear values, so 8-bit PNG/JPEG and 16-bit
+                textures can be optimised (converted once, at load). ``"file"``: Mitsuba's
+                default (8-bit files stay ``TensorXu8``, 4x smaller, but cannot be bound).
             scene_args: ``$name`` substitutions of the XML file.
         """
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"scene file not found: {str(path)!r} (resolved to {path.resolve()})")
-        backend.variant()
-        return cls(mi.load_file(str(path), optimize=optimize, **scene_args), name=path.stem)
+        _check_texture_storage(texture_storage)
+        variant = backend.variant()
+        parser = mi.parser
+        config = parser.ParserConfig(variant)
+        config.merge_meshes = config.merge_equivalent = optimize
+        with _resolving_from(path.parent):  # meshes and textures beside the file, as mi.load_file does
+            state = parser.parse_file(config, str(path), **{k: str(v) for k, v in scene_args.items()})
+            parser.transform_all(config, state)
+            if texture_storage == "float":
+                for node in state.nodes:
+                    if node.props.plugin_name() == "bitmap" and not node.props.has_property("format"):
+                        node.props["format"] = "variant"
+            mi_scene = parser.instantiate(config, state)
+        return cls(mi_scene, name=path.stem)
 
     @classmethod
-    def from_dict(cls, scene_dict: Mapping[str, Any], optimize: bool = False) -> Scene:
-        """Load a Mitsuba 3 scene dictionary (``{"type": "scene", ...}``)."""
+    def from_dict(cls, scene_dict: Mapping[str, Any], optimize: bool = False, texture_storage: TextureStorage = "float") -> Scene:
+        """Load a Mitsuba 3 scene dictionary (``{"type": "scene", ...}``); ``texture_storage`` as
+        in :meth:`from_file`."""
         if not isinstance(scene_dict, Mapping) or scene_dict.get("type") != "scene":
             raise ValueError("expected a Mitsuba scene dict with 'type': 'scene'")
+        _check_texture_storage(texture_storage)
         backend.variant()
+        if texture_storage == "float":
+            scene_dict = _float_bitmaps(scene_dict)
         return cls(mi.load_dict(dict(scene_dict), optimize=optimize))
 
     # --------------------------------------------------------------------------- queries
@@ -242,7 +325,11 @@ class Scene:
         if name in self.derived:
             return torch.tensor(self.derived[name].value, dtype=torch.float32).reshape(info.shape)
         value = self._base.get(name, self.params[name])
-        if dr.is_tensor_v(value) or _is_flat_float(value):
+        if _is_transform(value):
+            import numpy as np
+
+            out = torch.from_numpy(np.array(value.matrix, dtype=np.float32).reshape(4, 4))
+        elif dr.is_tensor_v(value) or _is_flat_float(value):
             out = value.torch()
         elif _is_vector_array(value):
             out = dr.ravel(value).torch()
@@ -279,8 +366,8 @@ class Scene:
                 raise TypeError(f"params[{name!r}] must be a torch.Tensor, got {type(tensor).__name__}")
             if not info.bindable:
                 raise TypeError(
-                    f"parameter {name!r} has type {info.type_name}, which torchir cannot bind from "
-                    f"a tensor (supported: float textures/tensors, float arrays, colours, points, vectors)"
+                    f"parameter {name!r} has type {info.type_name}, which torchir cannot bind from a tensor: "
+                    f"{_unbindable_hint(name, info.type_name)}"
                 )
             if tensor.dtype != torch.float32:
                 raise TypeError(
@@ -317,6 +404,64 @@ class Scene:
 
         return isinstance(self.integrator, ADIntegrator)
 
+    def derive(self, target: str, to_target: Callable[..., torch.Tensor], inputs: Mapping[str, Any]) -> list[str]:
+        """Declare torch-side parameters that together set the Mitsuba key ``target``.
+
+        Args:
+            target: the Mitsuba key they set (e.g. ``"bunny.vertex_positions"``).
+            to_target: ``to_target(*values)`` -> the target's value (any shape with as many
+                entries as the target), differentiable in torch; called with the inputs in order.
+            inputs: ``{new name: load-time value}``; a value's shape is the parameter's shape.
+
+        Returns:
+            The new names, usable in ``render(..., params)`` and in ``model.parameters``. A render
+            that gives some of them takes the load-time value for the others.
+
+        Example:
+            >>> scene.derive("light.position", lambda h: torch.cat([torch.zeros(1), h, torch.zeros(1)]),
+            ...              {"light.height": [2.0]})
+            ['light.height']
+        """
+        self._require_name(target)
+        if target in self.derived:
+            raise ValueError(f"{target!r} is itself a derived parameter: derive from a Mitsuba key")
+        info = self.info(target)
+        if not info.bindable:
+            raise TypeError(f"cannot derive {target!r} ({info.type_name}): {_unbindable_hint(target, info.type_name)}")
+        taken = [d.name for d in self.derived.values() if d.target == target]
+        if taken:
+            raise ValueError(f"{target!r} is already set by the derived parameter(s) {taken}")
+        if not inputs:
+            raise ValueError("derive() needs at least one input")
+        for name in inputs:
+            if not isinstance(name, str) or not name:
+                raise TypeError(f"derived parameter names are non-empty strings, got {name!r}")
+            if name in self.params or name in self.derived:
+                raise ValueError(f"derived parameter name {name!r} is already a parameter of the scene: choose another")
+        values = {n: torch.as_tensor(v, dtype=torch.float32).detach().clone() for n, v in inputs.items()}
+        with torch.no_grad():
+            result = torch.as_tensor(to_target(*values.values()))
+        if result.numel() != math.prod(info.shape):
+            raise ValueError(
+                f"to_target gives {result.numel()} values for {target!r}, which has shape {info.shape} "
+                f"({math.prod(info.shape)} values)"
+            )
+        if not bool(torch.isfinite(result).all()):
+            raise ValueError(f"to_target gives NaN/Inf for {target!r} at the inputs' load-time values")
+        loaded = self.get(target)
+        if not torch.allclose(result.float().reshape(loaded.shape), loaded, rtol=1e-4, atol=1e-5):
+            self.warn_once(
+                f"derive:{target}",
+                f"the load-time values of {list(values)} do not reproduce the loaded {target!r}: renders that "
+                f"give them differ from the scene as loaded even where they are unchanged",
+            )
+        group = tuple(values)
+        for name, value in values.items():
+            self.derived[name] = DerivedParameter(
+                name, target, tuple(value.shape), to_target, tuple(value.flatten().tolist()), inputs=group
+            )
+        return list(group)
+
     def expand_derived(self, values: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """``values`` with every derived parameter replaced by its Mitsuba target (in torch,
         differentiably); the targets are validated like any bound value."""
@@ -324,11 +469,14 @@ class Scene:
             return dict(values)
         out = {n: t for n, t in values.items() if n not in self.derived}
         targets = {}
-        for name in values.keys() & self.derived.keys():
+        for name in sorted(values.keys() & self.derived.keys()):
             d = self.derived[name]
             if d.target in values:
                 raise ValueError(f"params gives both {name!r} and the parameter it sets, {d.target!r}: pass one")
-            targets[d.target] = d.to_target(values[name]).to(torch.float32).reshape(self.info(d.target).shape)
+            if d.target in targets:
+                continue  # set already, by another input of the same group
+            args = [values[n] if n in values else self.get(n) for n in d.group]
+            targets[d.target] = d.to_target(*args).to(torch.float32).reshape(self.info(d.target).shape)
         self.check_values(targets)
         return {**out, **targets}
 
@@ -355,6 +503,8 @@ class Scene:
         Differentiable: gradients flow back to ``tensor``.
         """
         value = self._base.get(name, self.params[name])
+        if _is_transform(value):
+            return type(value)(dr.unravel(mi.Matrix4f, tensor.array, order="C"))
         if dr.is_tensor_v(value):
             return tensor if tuple(tensor.shape) == tuple(value.shape) else type(value)(tensor.array, value.shape)
         if _is_flat_float(value):

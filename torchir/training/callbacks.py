@@ -10,9 +10,11 @@ import lightning.pytorch as pl
 import numpy as np
 import torch
 
-from ..imageio import save_png
+from lightning.pytorch.callbacks import TQDMProgressBar
 
-__all__ = ["ParameterProjection", "StepTimer", "NonFiniteLossGuard", "ImageWriter", "CurvePlotter"]
+from ..imageio import write_image
+
+__all__ = ["ParameterProjection", "StepTimer", "NonFiniteLossGuard", "ImageWriter", "CurvePlotter", "ResultWriter", "StepProgressBar"]
 
 
 class ParameterProjection(pl.Callback):
@@ -45,10 +47,12 @@ class NonFiniteLossGuard(pl.Callback):
 
 
 def _write_exr(path: Path, image: torch.Tensor) -> None:
-    import mitsuba as mi
+    write_image(path, image)
 
-    array = np.ascontiguousarray(image.detach().float().permute(1, 2, 0).cpu().numpy())
-    mi.Bitmap(array).write(str(path))
+
+def _interrupted(exception: BaseException) -> bool:
+    """Ctrl-C: the run stops between steps, with a state worth keeping."""
+    return isinstance(exception, KeyboardInterrupt)
 
 
 class ImageWriter(pl.Callback):
@@ -72,9 +76,9 @@ class ImageWriter(pl.Callback):
         folder = Path(pl_module.results_dir) / "images"
         folder.mkdir(parents=True, exist_ok=True)
         for view, image in images.items():
-            save_png(folder / f"{kind}_v{view}.png", image)
+            write_image(folder / f"{kind}_v{view}.png", image)
             if self.exr:
-                _write_exr(folder / f"{kind}_v{view}.exr", image)
+                write_image(folder / f"{kind}_v{view}.exr", image)
 
     def _views(self, trainer) -> list[int]:
         return list(trainer.datamodule.views)[: self.max_views]
@@ -96,6 +100,10 @@ class ImageWriter(pl.Callback):
         if trainer.is_global_zero:
             self._write(trainer, pl_module, "final", self._previews(trainer, pl_module))
 
+    def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
+        if _interrupted(exception):
+            self.on_train_end(trainer, pl_module)
+
 
 class CurvePlotter(pl.Callback):
     """Keep the per-step metrics and write ``curves.png`` (loss, image and parameter error
@@ -113,7 +121,8 @@ class CurvePlotter(pl.Callback):
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         metrics = trainer.callback_metrics
-        row = {"step": float(trainer.global_step), "seconds": time.perf_counter() - self._start}
+        # the step whose metrics were just logged (metrics.csv's numbering): global_step has moved on
+        row = {"step": float(trainer.global_step - 1), "seconds": time.perf_counter() - self._start}
         row.update({m: float(metrics[m]) for m in self.METRICS if m in metrics})
         self.history.append(row)
         self._elapsed = row["seconds"]
@@ -121,6 +130,10 @@ class CurvePlotter(pl.Callback):
     def on_train_end(self, trainer, pl_module) -> None:
         if trainer.is_global_zero and self.history:
             self.plot(Path(pl_module.results_dir) / "curves.png")
+
+    def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
+        if _interrupted(exception):
+            self.on_train_end(trainer, pl_module)
 
     def plot(self, path: Path) -> None:
         import matplotlib
@@ -147,3 +160,64 @@ class CurvePlotter(pl.Callback):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.history, self._elapsed = list(state["history"]), float(state["elapsed"])
+
+
+class ResultWriter(pl.Callback):
+    """At the end of a run and on Ctrl-C: ``checkpoints/last.ckpt`` of the last step and
+    ``result.yaml`` (recovered values in their own units, see :mod:`torchir.training.results`)."""
+
+    def _finish(self, trainer, pl_module) -> None:
+        from lightning.pytorch.callbacks import ModelCheckpoint
+
+        from .results import write_results
+
+        checkpoint = trainer.checkpoint_callback
+        if isinstance(checkpoint, ModelCheckpoint) and checkpoint.dirpath and trainer.global_step > 0:
+            trainer.save_checkpoint(Path(checkpoint.dirpath) / f"{ModelCheckpoint.CHECKPOINT_NAME_LAST}{ModelCheckpoint.FILE_EXTENSION}")
+        if trainer.is_global_zero:
+            path = write_results(pl_module, pl_module.results_dir, trainer.global_step, images=False)
+            print(f"[torchir] recovered values: {path}")
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        if pl_module.nonfinite is None:
+            self._finish(trainer, pl_module)
+
+    def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
+        if _interrupted(exception):
+            print(f"\n[torchir] interrupted after step {trainer.global_step}: saving the state")
+            self._finish(trainer, pl_module)
+
+
+class StepProgressBar(TQDMProgressBar):
+    """One bar over optimiser steps (``step 120/150``, seconds per step, loss, parameter error),
+    instead of Lightning's per-epoch bar: a run's epoch is one pass over the views, often one step."""
+
+    SHOWN = ("loss", "param_error")
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self.train_progress_bar = self.init_train_tqdm()
+        self.train_progress_bar.reset(total=trainer.max_steps if trainer.max_steps > 0 else None)
+        self.train_progress_bar.n = trainer.global_step
+        self.train_progress_bar.set_description("step")
+        self.train_progress_bar.bar_format = "{desc} {n_fmt}/{total_fmt} |{bar}| [{elapsed}<{remaining}{postfix}]"
+
+    def on_train_epoch_start(self, trainer, *_: Any) -> None:
+        pass  # no per-epoch reset
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        bar = self.train_progress_bar
+        bar.n = trainer.global_step
+        metrics = trainer.callback_metrics
+        postfix = {}
+        if "seconds_per_step" in metrics:
+            postfix["s/step"] = f"{float(metrics['seconds_per_step']):.3g}"
+        postfix.update({k: f"{float(metrics[k]):.4g}" for k in self.SHOWN if k in metrics})
+        bar.set_postfix(postfix, refresh=False)
+        bar.refresh()
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
+        pass
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        if self.train_progress_bar is not None:
+            self.train_progress_bar.close()

@@ -4,8 +4,20 @@ Beyond Lightning's own options (``trainer.*``, ``model.*``, ``data.*``, ``--ckpt
 dotted overrides such as ``--trainer.max_steps 50``), the parser has three callback sections
 that are always on: ``checkpoint`` (ModelCheckpoint), ``images`` (ImageWriter) and ``curves``
 (CurvePlotter). Every run writes into a new folder ``<save_dir>/<name>/version_<n>/``:
-``config.yaml`` (the resolved config), ``metrics.csv``, ``images/``, ``curves.png`` and
-``checkpoints/``; earlier runs are never overwritten.
+``config.yaml`` (the resolved config), ``metrics.csv``, ``images/``, ``curves.png``,
+``result.yaml`` (recovered values) and ``checkpoints/`` (``last.ckpt``: the last step, also on
+Ctrl-C); earlier runs are never overwritten.
+
+torchir's additions to the command line:
+
+- Relative paths in a config (``model.scene``, ``data.targets``, a derived parameter's
+  ``function`` file) are relative to that config file, not to the working directory.
+- ``--set KEY.FIELD=VALUE`` sets one field of one ``model.parameters`` entry (Mitsuba keys
+  contain dots, so ``--model.parameters.<key>.init`` cannot work):
+  ``--set 'red.reflectance.value.init=[0.3, 0.3, 0.3]'``. ``--model.parameters '{...}'``
+  merges into the config's map, field by field, instead of replacing it.
+- ``--ckpt_path last`` resumes from the newest run's ``last.ckpt`` of the same logger
+  ``save_dir``/``name``.
 """
 from __future__ import annotations
 
@@ -13,6 +25,8 @@ import importlib.util
 import os
 import sys
 import warnings
+from pathlib import Path
+from typing import Any
 
 from lightning.pytorch.callbacks import ModelCheckpoint
 from jsonargparse import lazy_instance
@@ -22,8 +36,88 @@ from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from .callbacks import CurvePlotter, ImageWriter
 from .data import ViewDataModule
 from .module import InverseRenderingModule, NonFiniteLossError
+from .parameters import ParameterConfig, is_image_file
 
-__all__ = ["TorchirCLI", "main"]
+__all__ = ["TorchirCLI", "main", "split_parameter_sets"]
+
+_FIELDS = tuple(ParameterConfig.__dataclass_fields__)
+
+
+def _parse_value(text: str) -> Any:
+    import yaml
+
+    return yaml.safe_load(text)
+
+
+def split_parameter_sets(argv: list[str]) -> tuple[list[str], list[tuple[str, str, Any]]]:
+    """Take ``--set KEY.FIELD=VALUE`` and ``--model.parameters MAP`` out of ``argv``.
+
+    Returns the remaining arguments and ``(key, field, value)`` triples to merge into
+    ``model.parameters`` (a ``MAP`` entry ``{key: {field: value}}`` gives one triple per field).
+    """
+    rest, sets = [], []
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        name, eq, inline = arg.partition("=")
+        if name in ("--set", "--model.parameters"):
+            if eq:
+                value = inline
+            elif i + 1 < len(argv):
+                value, i = argv[i + 1], i + 1
+            else:
+                raise ValueError(f"{name} needs a value")
+            if name == "--set":
+                sets.append(_one_set(value))
+            else:
+                sets.extend(_map_sets(value))
+        else:
+            rest.append(arg)
+        i += 1
+    return rest, sets
+
+
+def _one_set(text: str) -> tuple[str, str, Any]:
+    path, eq, value = text.partition("=")
+    key, _, field = path.strip().rpartition(".")
+    if not eq or not key or field not in _FIELDS:
+        raise ValueError(
+            f"--set takes KEY.FIELD=VALUE with FIELD one of {list(_FIELDS)}, e.g. "
+            f"--set 'red.reflectance.value.init=0.3'; got {text!r}"
+        )
+    return key, field, _parse_value(value)
+
+
+def _map_sets(text: str) -> list[tuple[str, str, Any]]:
+    mapping = _parse_value(text)
+    if not isinstance(mapping, dict):
+        raise ValueError(f"--model.parameters takes a mapping {{key: {{field: value}}}}, got {text!r}")
+    out = []
+    for key, fields in mapping.items():
+        if fields is None or fields == {}:
+            out.append((key, None, None))  # the entry with default fields
+            continue
+        if not isinstance(fields, dict):
+            raise ValueError(f"--model.parameters[{key!r}] must be a mapping of {list(_FIELDS)}, got {fields!r}")
+        for field, value in fields.items():
+            if field not in _FIELDS:
+                raise ValueError(f"--model.parameters[{key!r}] has unknown field {field!r}; allowed: {list(_FIELDS)}")
+            out.append((key, field, value))
+    return out
+
+
+def _absolute(path: str, base: Path) -> str:
+    return path if Path(path).is_absolute() else str((base / path).resolve())
+
+
+def _newest_last_checkpoint(save_dir: str, name: str) -> Path:
+    runs = sorted(Path(save_dir, name).glob("version_*/checkpoints/last.ckpt"), key=lambda p: p.stat().st_mtime)
+    if not runs:
+        raise FileNotFoundError(
+            f"--ckpt_path last: no run of {str(Path(save_dir, name))!r} has checkpoints/last.ckpt yet; "
+            f"start without --ckpt_path, or give a checkpoint file"
+        )
+    return runs[-1]
 
 # Lightning 2.6 itself calls APIs that jsonargparse and torch deprecate; users cannot act on it.
 os.environ.setdefault("JSONARGPARSE_DEPRECATION_WARNINGS", "off")
@@ -35,7 +129,62 @@ def _tensorboard_installed() -> bool:
 
 
 class TorchirCLI(LightningCLI):
-    """LightningCLI with torchir's defaults: CSV (+TensorBoard) logs, checkpoints, images, curves."""
+    """LightningCLI with torchir's defaults: CSV (+TensorBoard) logs, checkpoints, images, curves,
+    result.yaml; config-relative paths, ``--set`` and ``--ckpt_path last`` (module docstring)."""
+
+    parameter_sets: list[tuple[str, str, Any]] = []  # from main(): merged into model.parameters
+
+    def before_instantiate_classes(self) -> None:
+        config = self.config[self.subcommand] if self.subcommand else self.config
+        files = getattr(config, "config", None) or []
+        base = Path(files[-1].absolute).parent if files else Path.cwd()
+        self._resolve_paths(config, base)
+        self._merge_parameter_sets(config)
+        if self.subcommand == "fit" and getattr(config, "ckpt_path", None) == "last":
+            logger = config.trainer.logger
+            logger = logger[0] if isinstance(logger, list) and logger else logger
+            args = getattr(logger, "init_args", None)
+            save_dir, name = (getattr(args, "save_dir", "results"), getattr(args, "name", "torchir")) if args else ("results", "torchir")
+            config.ckpt_path = str(_newest_last_checkpoint(save_dir, name))
+            print(f"[torchir] resuming from {config.ckpt_path}")
+
+    @staticmethod
+    def _resolve_paths(config, base: Path) -> None:
+        model, data = config.model, config.data
+        if isinstance(model.scene, str) and model.scene.endswith(".xml"):
+            model.scene = _absolute(model.scene, base)
+        if data.targets:
+            data.targets = [_absolute(str(t), base) for t in data.targets]
+        for entry in (model.parameters or {}).values():
+            for field in ("init", "truth"):
+                value = entry.get(field) if isinstance(entry, dict) else getattr(entry, field, None)
+                if is_image_file(value):
+                    if isinstance(entry, dict):
+                        entry[field] = _absolute(value, base)
+                    else:
+                        setattr(entry, field, _absolute(value, base))
+        for spec in (model.derived or {}).values():
+            function = spec.get("function") if isinstance(spec, dict) else None
+            if isinstance(function, str) and ".py:" in function:
+                file, attr = function.rsplit(":", 1)
+                spec["function"] = f"{_absolute(file, base)}:{attr}"
+
+    def _merge_parameter_sets(self, config) -> None:
+        from jsonargparse import Namespace
+
+        if not self.parameter_sets:
+            return
+        parameters = dict(config.model.parameters or {})
+        for key, field, value in self.parameter_sets:
+            entry = parameters.get(key)
+            if entry is None:
+                entry = Namespace(**{f: getattr(ParameterConfig(), f) for f in _FIELDS})
+            elif isinstance(entry, dict):
+                entry = Namespace(**{**{f: getattr(ParameterConfig(), f) for f in _FIELDS}, **entry})
+            if field is not None:
+                setattr(entry, field, tuple(value) if field == "bounds" and value is not None else value)
+            parameters[key] = entry
+        config.model.parameters = parameters
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
@@ -68,6 +217,11 @@ class TorchirCLI(LightningCLI):
 def main(args: list[str] | None = None) -> int:
     """Run ``fit``/``validate`` through :class:`TorchirCLI`; returns a process exit code."""
     try:
+        args, TorchirCLI.parameter_sets = split_parameter_sets(sys.argv[1:] if args is None else list(args))
+    except ValueError as error:  # a command-line error, reported like the parser's own
+        print(f"torchir: error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
+    try:
         TorchirCLI(
             InverseRenderingModule,
             ViewDataModule,
@@ -81,8 +235,10 @@ def main(args: list[str] | None = None) -> int:
             seed_everything_default=0,
             auto_configure_optimizers=False,
         )
-    except (NonFiniteLossError, FileNotFoundError, KeyError, ValueError, TypeError) as error:
+    except (NonFiniteLossError, FileNotFoundError, KeyError, ValueError, TypeError, AttributeError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"torchir: error: {message}", file=sys.stderr)
         return 1
+    finally:
+        TorchirCLI.parameter_sets = []
     return 0

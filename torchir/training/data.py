@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Union
 
 import lightning.pytorch as pl
 import numpy as np
@@ -10,27 +10,26 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from ..functions import render
+from ..imageio import COLORSPACES, ENCODED_SUFFIXES, ColorSpace, read_image
 
 __all__ = ["ViewDataModule", "ViewDataset", "load_image"]
 
 
-def load_image(path: str | Path) -> torch.Tensor:
-    """Read an EXR/HDR (linear) or PNG/JPEG (sRGB, linearised) file as ``(3, H, W)`` float32."""
-    import mitsuba as mi
+def load_image(path: str | Path, colorspace: ColorSpace = "auto") -> torch.Tensor:
+    """Read an image file as linear radiance ``(C, H, W)`` float32 (see :func:`torchir.imageio.read_image`)."""
+    return read_image(path, colorspace)
 
-    from .. import backend
 
-    backend.variant()
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"target image not found: {str(path)!r}")
-    bitmap = mi.Bitmap(str(path))
-    srgb = path.suffix.lower() in (".png", ".jpg", ".jpeg")
-    rgb = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
-    array = np.array(rgb, dtype=np.float32)
-    if srgb:  # 8-bit files store sRGB-encoded values: undo the transfer curve
-        array = np.where(array <= 0.04045, array / 12.92, ((array + 0.055) / 1.055) ** 2.4).astype(np.float32)
-    return torch.from_numpy(np.ascontiguousarray(array)).permute(2, 0, 1).contiguous()
+def _resolve_saturation(saturation: Union[float, str, None], files: Optional[list[str]]) -> Optional[float]:
+    """The radiance at which the targets clip: 1.0 for 8/16-bit files under ``"auto"``."""
+    if saturation == "auto":
+        encoded = files is not None and any(Path(f).suffix.lower() in ENCODED_SUFFIXES for f in files)
+        return 1.0 if encoded else None
+    if saturation is None:
+        return None
+    if isinstance(saturation, str) or not saturation > 0:
+        raise ValueError(f"data.saturation must be 'auto', null or a number > 0, got {saturation!r}")
+    return float(saturation)
 
 
 class ViewDataset(Dataset):
@@ -51,12 +50,19 @@ class ViewDataModule(pl.LightningDataModule):
 
     Targets are either rendered from the model's scene at ``target_spp`` with the parameters'
     ground-truth values (``targets: null``: synthetic experiments, parameter error known), or
-    read from image files, one per view (``targets: [a.exr, b.png, ...]``; EXR is linear,
-    PNG is taken as sRGB). A batch is a set of views; with several processes (DDP) each
-    process renders its share of the batch.
+    read from image files, one per view (``targets: [a.exr, b.png, ...]``), as linear radiance
+    by each file's own encoding (EXR/HDR linear; 8/16-bit PNG and JPEG sRGB; ``colorspace``
+    overrides). A batch is a set of views; with several processes (DDP) each process renders
+    its share of the batch.
 
     Args:
         targets: image files, one per entry of ``views``; ``None`` for synthetic targets.
+            Relative paths are relative to the config file under ``torchir fit``.
+        colorspace: ``auto`` (each file's own encoding), ``srgb`` or ``linear`` (see
+            :func:`torchir.imageio.read_image`).
+        saturation: radiance at which the targets clipped: renders are clipped there too
+            before the loss, so over-exposed pixels of a photo (a visible lamp) do not pull the
+            fit down. ``auto``: 1.0 for 8/16-bit files, none for EXR and synthetic targets.
         views: sensor indices to fit (default: every sensor of the scene).
         views_per_step: views per optimiser step over all processes (default: all views).
         target_spp: samples per pixel of synthetic targets.
@@ -70,6 +76,8 @@ class ViewDataModule(pl.LightningDataModule):
         views_per_step: Optional[int] = None,
         target_spp: int = 256,
         target_seed: int = 1_000_003,
+        colorspace: ColorSpace = "auto",
+        saturation: Union[float, str, None] = "auto",
     ) -> None:
         super().__init__()
         if views is not None and len(views) == 0:
@@ -81,6 +89,10 @@ class ViewDataModule(pl.LightningDataModule):
         self.target_files, self.requested_views = targets, views
         self.views_per_step, self.target_spp, self.target_seed = views_per_step, target_spp, target_seed
         self.synthetic = targets is None
+        if colorspace not in COLORSPACES:
+            raise ValueError(f"data.colorspace must be one of {COLORSPACES}, got {colorspace!r}")
+        self.colorspace = colorspace
+        self.saturation = _resolve_saturation(saturation, targets)
         self.views: list[int] = []
         self.targets: list[torch.Tensor] = []
 
@@ -107,16 +119,30 @@ class ViewDataModule(pl.LightningDataModule):
                 raise FileNotFoundError(f"target image(s) not found: {', '.join(repr(m) for m in missing)}")
             self.targets = []
             for v, path in zip(self.views, self.target_files):
-                image = load_image(path)
-                expected = (3, *scene.sensor_resolution(v))
-                if tuple(image.shape) != expected:
-                    raise ValueError(
-                        f"target {path!r} is {image.shape[2]}x{image.shape[1]} (W x H), but sensor {v} renders "
-                        f"{expected[2]}x{expected[1]}: resize it or set model.resolution"
-                    )
-                if not bool(torch.isfinite(image).all()):
-                    raise ValueError(f"target {path!r} contains NaN/Inf pixels")
-                self.targets.append(image)
+                self.targets.append(self._read_target(path, v, scene))
+
+    def _read_target(self, path: str, view: int, scene) -> torch.Tensor:
+        """One target file as ``(3, H, W)`` linear radiance, checked against sensor ``view``."""
+        image = read_image(path, self.colorspace)
+        if image.shape[0] != 3:
+            raise ValueError(
+                f"target {path!r} is greyscale (1 channel), but the scene renders RGB: save it as an RGB image"
+            )
+        h, w = scene.sensor_resolution(view)
+        if tuple(image.shape[1:]) != (h, w):
+            fix = (
+                "set model.resolution"
+                if scene.name in _builtin_names()
+                else "set the film's width/height in the scene file (or pass them as model.scene_options if the file "
+                "declares them with <default>)"
+            )
+            raise ValueError(
+                f"target {path!r} is {image.shape[2]}x{image.shape[1]} (W x H), but sensor {view} renders {w}x{h}: "
+                f"resize the image or {fix}"
+            )
+        if not bool(torch.isfinite(image).all()):
+            raise ValueError(f"target {path!r} contains NaN/Inf pixels")
+        return image
 
     def train_dataloader(self) -> DataLoader:
         world = self.trainer.world_size if self.trainer is not None else 1
@@ -126,3 +152,9 @@ class ViewDataModule(pl.LightningDataModule):
         if per_step % world:
             raise ValueError(f"data.views_per_step ({per_step}) must be divisible by the number of processes ({world})")
         return DataLoader(ViewDataset(self.views, self.targets), batch_size=per_step // world, shuffle=False, num_workers=0)
+
+
+def _builtin_names() -> set[str]:
+    from .. import scenes
+
+    return set(scenes.available())

@@ -10,11 +10,14 @@ import torch
 from torch import nn
 
 from .. import Scene
+from ..scene import _unbindable_hint
 from ..functions import render
+from ..derived import declare as declare_derived
 from .parameters import ParameterConfig, SceneParameter, resolve_value
 
 __all__ = ["InverseRenderingModule", "NonFiniteLossError"]
 
+SATURATED = 0.995  # of data.saturation: an 8-bit sRGB 254 decodes to 0.991, so >= 0.995 means 255
 _GOLDEN = 2654435761  # Knuth's multiplicative hash: spreads base seeds far apart
 
 
@@ -42,6 +45,9 @@ class InverseRenderingModule(pl.LightningModule):
         scene: a built-in scene name (``torchir.scenes.available()``) or a Mitsuba ``.xml`` path.
         resolution: film size of a built-in scene, ``H`` or ``[H, W]``.
         scene_options: builder options of a built-in scene, or ``$``-substitutions of an XML file.
+        derived: ``{label: {type: rigid | function, ...}}``: derived parameters declared on the
+            scene before ``parameters`` are read (see :mod:`torchir.derived`), e.g. a shape's
+            pose ``{type: rigid, shape: bunny}`` giving ``bunny.translation``/``.rotation``/``.scale``.
         parameters: ``{Mitsuba key: ParameterConfig}``; default: the built-in scene's typical
             unknowns, initialised to 0.5.
         loss: ``"l1"``, ``"l2"``, ``"relative_l2"`` or any ``nn.Module`` ``(rendered, target) -> scalar``
@@ -68,6 +74,7 @@ class InverseRenderingModule(pl.LightningModule):
         scene: str = "cbox",
         resolution: Optional[Union[int, tuple[int, int]]] = None,
         scene_options: Optional[dict[str, Any]] = None,
+        derived: Optional[dict[str, dict[str, Any]]] = None,
         parameters: Optional[dict[str, ParameterConfig]] = None,
         loss: Union[str, nn.Module, dict[str, Any]] = "l2",
         denoiser: Optional[Union[nn.Module, dict[str, Any]]] = None,
@@ -88,6 +95,8 @@ class InverseRenderingModule(pl.LightningModule):
         if lr <= 0:
             raise ValueError(f"model.lr must be > 0, got {lr}")
         self.scene = _load_scene(scene, resolution, dict(scene_options or {}))
+        for label, spec in (derived or {}).items():
+            declare_derived(self.scene, label, spec)
         if parameters is None:
             if self.scene.name not in _builtin_names():
                 raise ValueError("model.parameters is required for scenes loaded from files")
@@ -121,7 +130,10 @@ class InverseRenderingModule(pl.LightningModule):
 
     # ------------------------------------------------------------------------ parameters
     def _build_parameter(self, key: str) -> SceneParameter:
-        initial = self._config_value(key, self.configs[key].init, "init")  # KeyError with close matches
+        info = self.scene.info(key)  # KeyError with close matches
+        if not info.bindable:
+            raise TypeError(f"parameters[{key!r}]: {key!r} has type {info.type_name}, which torchir cannot optimise: {_unbindable_hint(key, info.type_name)}")
+        initial = self._config_value(key, self.configs[key].init, "init")
         self.scene.check_values({key: initial.requires_grad_()})  # dtype, shape, differentiable, finite
         return SceneParameter(key, initial.detach(), self.configs[key])
 
@@ -251,6 +263,12 @@ class InverseRenderingModule(pl.LightningModule):
         else:
             guide = self.guide_buffers(views, step) if getattr(self.denoiser, "needs_guide", False) else None
             images = self.render_views(views, step)
+            saturation = self.target_saturation
+            if saturation is not None:
+                # A clipped photo pixel only says "at least this bright": leave it out of the loss (the
+                # target's own value, no gradient). Clipping the noisy render instead would be biased,
+                # E[min(I, s)] < min(E[I], s), and pulls the fit (measured: a lamp of 12 fitted to ~20).
+                images = torch.where(targets >= saturation * SATURATED, targets, images)
             # of the render itself: a target-aware denoiser's output is pulled towards the target
             image_error = (images.detach() - targets).square().mean()
             if self.denoiser is not None:
@@ -267,7 +285,8 @@ class InverseRenderingModule(pl.LightningModule):
             return None  # Lightning skips backward and the optimiser step
         batch_size = len(views)
         self.log("loss", loss, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True)
-        self.log("image_error", image_error, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True)
+        if not self._loss_is_image_error:  # else it would repeat the loss
+            self.log("image_error", image_error, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True)
         self.log("paths_per_step", float(paths + stage1_paths), on_step=True, on_epoch=False, batch_size=batch_size, reduce_fx="sum", sync_dist=True)
         if self.sampler is not None and hasattr(self.sampler, "diagnostics"):
             for name, value in self.sampler.diagnostics().items():
@@ -277,9 +296,26 @@ class InverseRenderingModule(pl.LightningModule):
             self.log("param_error", error, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size)
         return loss
 
+    @property
+    def target_saturation(self) -> Optional[float]:
+        """Radiance at which the targets clipped (``ViewDataModule.saturation``), or None."""
+        datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        return getattr(datamodule, "saturation", None)
+
+    @property
+    def _loss_is_image_error(self) -> bool:
+        from ..modules import L2Loss
+
+        return type(self.loss_fn) is L2Loss and getattr(self.loss_fn, "reduction", "mean") == "mean" and self.denoiser is None
+
     def setup(self, stage: str) -> None:
         datamodule = getattr(self.trainer, "datamodule", None)
         synthetic = datamodule is None or getattr(datamodule, "synthetic", True)
+        if self.pixel_mode and getattr(datamodule, "saturation", None) is not None:
+            raise ValueError(
+                "pixel sampling compares unclipped pixels, but the targets clip at "
+                f"{datamodule.saturation} (8/16-bit files): use EXR targets, or set data.saturation: null"
+            )
         self._truth = self.ground_truth(explicit_only=not synthetic)
         # trainer.log_dir is a collective under DDP: resolve it here, on every rank, once.
         self._results_dir = Path(self.trainer.log_dir or self.trainer.default_root_dir)
@@ -294,9 +330,16 @@ class InverseRenderingModule(pl.LightningModule):
         return torch.optim.Adam(groups, lr=self.lr)
 
     def configure_callbacks(self) -> list[pl.Callback]:
-        from .callbacks import NonFiniteLossGuard, ParameterProjection, StepTimer
+        from .callbacks import NonFiniteLossGuard, ParameterProjection, ResultWriter, StepProgressBar, StepTimer
 
-        return [ParameterProjection(), StepTimer(), NonFiniteLossGuard()]
+        from lightning.pytorch.callbacks import RichProgressBar, TQDMProgressBar
+
+        callbacks = [ParameterProjection(), StepTimer(), NonFiniteLossGuard(), ResultWriter()]
+        bar = self.trainer.progress_bar_callback if self._trainer is not None else None
+        if type(bar) in (TQDMProgressBar, RichProgressBar):  # Lightning's default, per-epoch bar
+            self.trainer.callbacks.remove(bar)
+            callbacks.append(StepProgressBar())
+        return callbacks
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         if self.sampler is not None and hasattr(self.sampler, "state_dict"):

@@ -31,7 +31,8 @@ class ParameterConfig:
     Attributes:
         init: a constant (broadcast to the parameter's shape), an explicit nested list of the
             parameter's shape, ``"random"`` (uniform in ``bounds``, default [0, 1], drawn with
-            ``seed``) or ``"scene"`` (the value the scene was loaded with).
+            ``seed``), ``"scene"`` (the value the scene was loaded with) or an image file
+            (``.png``/``.jpg``/``.exr``...: a texture, read as linear values like a target).
         bounds: ``[lo, hi]``: clamped after every optimiser step (transform ``none``) or the
             range of the sigmoid (transform ``sigmoid``).
         lr: learning rate of this parameter (default: the model's ``lr``).
@@ -49,6 +50,13 @@ class ParameterConfig:
     truth: Optional[InitValue] = None
 
 
+def is_image_file(spec: object) -> bool:
+    """Whether a config value names an image file (by its suffix)."""
+    from ..imageio import ENCODED_SUFFIXES, LINEAR_SUFFIXES
+
+    return isinstance(spec, str) and spec.lower().endswith(LINEAR_SUFFIXES + ENCODED_SUFFIXES)
+
+
 def resolve_value(spec: InitValue, shape: torch.Size, scene_value: torch.Tensor, bounds, seed: int, what: str) -> torch.Tensor:
     """A float32 tensor of ``shape`` from a config value (see :class:`ParameterConfig`)."""
     if isinstance(spec, str):
@@ -58,7 +66,14 @@ def resolve_value(spec: InitValue, shape: torch.Size, scene_value: torch.Tensor,
             lo, hi = bounds if bounds is not None else (0.0, 1.0)
             generator = torch.Generator().manual_seed(seed)
             return lo + (hi - lo) * torch.rand(shape, generator=generator)
-        raise ValueError(f"{what} must be a number, a list, 'random' or 'scene', got {spec!r}")
+        if is_image_file(spec):
+            from ..imageio import read_image
+
+            image = read_image(spec).permute(1, 2, 0)  # Mitsuba's (H, W, C)
+            if tuple(image.shape) != tuple(shape):
+                raise ValueError(f"{what}: image {spec!r} is {tuple(image.shape)} (H, W, C), the parameter is {tuple(shape)}")
+            return image.contiguous()
+        raise ValueError(f"{what} must be a number, a list, 'random', 'scene' or an image file, got {spec!r}")
     value = torch.as_tensor(spec, dtype=torch.float32)
     try:
         return value.expand(shape).clone() if value.dim() <= len(shape) else value.reshape(shape)
@@ -86,6 +101,15 @@ class SceneParameter(nn.Module):
         elif config.transform == "log" and bounds is not None:
             raise ValueError(f"parameter {key!r}: transform 'log' keeps values positive; drop 'bounds'")
         self.bounds = None if bounds is None else (float(bounds[0]), float(bounds[1]))
+        if self.bounds is not None:
+            lo, hi = self.bounds
+            outside = (initial < lo) | (initial > hi)
+            if bool(outside.any()):
+                bad = initial[outside].flatten()[:4].tolist()
+                raise ValueError(
+                    f"parameter {key!r}: init has {int(outside.sum())} value(s) outside bounds [{lo}, {hi}] "
+                    f"(e.g. {[round(b, 6) for b in bad]}): change init or bounds"
+                )
         self.latent = nn.Parameter(self._inverse(initial.float()))
 
     def _inverse(self, x: torch.Tensor) -> torch.Tensor:
