@@ -8,14 +8,22 @@ depth, from :func:`torchir.functions.render_gbuffers`) and by their distance:
 
 * :class:`CrossBilateralDenoiser`: the weighted mean ``sum w f~ / sum w`` (paper 002, Eq. 5);
 * :class:`GBufferRegressionDenoiser`: a weighted local linear fit of ``f~`` on the G-buffers and
-  the pixel offset (Moon et al. 2014, as the paper's baseline; ridge 1e-3 as its released code).
+  the pixel offset (Moon et al. 2014, as the paper's baseline). As the released code: the
+  regression columns are the raw G-buffer differences (albedo in [0, 1], depth / max depth) and
+  the offset / r, with 1e-3 added to every diagonal entry of the normal matrix; the bandwidths
+  enter the weights only.
 
 The G-buffers describe the *current* scene, not the target: these filters blur target detail
 that the scene does not show yet, which is what the target-aware denoiser avoids. Like it,
 they are linear in ``noisy`` (backward = transposed taps); the weights are rebuilt on every
 call, since the G-buffers change as the scene does (and, as in the paper, no gradient flows
-through them: the second term of Eq. 4 is dropped). Windows are truncated at the border (the
-authors' code reflects; only border pixels differ).
+through them: the second term of Eq. 4 is dropped).
+
+Border: ``border="truncate"`` (default) drops window pixels outside the image;
+``border="reflect"`` mirrors them as the authors' code does (numpy ``"reflect"``: the edge pixel
+is not repeated), and the spatial term and offset columns then use the mirrored pixel's own
+position, also as that code does. Our backward stays the exact transpose of the forward in both
+modes (the released CBF backward is not, near the border: it assumes symmetric windows).
 """
 from __future__ import annotations
 
@@ -24,7 +32,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from .target_aware import (
@@ -34,6 +41,8 @@ from .target_aware import (
     check_hparams,
     check_noisy,
     choose_table,
+    mirror_index,
+    pad_window,
     serial_for,
     to_batch,
 )
@@ -47,6 +56,7 @@ __all__ = [
 
 GUIDE_CHANNELS = 7  # albedo RGB, normal XYZ, depth (torchir.functions.render_gbuffers)
 _RIDGE = 1e-3  # added to every diagonal entry of the regression's normal matrix ([code])
+BORDERS = ("truncate", "reflect")
 
 
 def _check_guide(guide: torch.Tensor | None, y: torch.Tensor) -> torch.Tensor:
@@ -68,27 +78,65 @@ def _check_guide(guide: torch.Tensor | None, y: torch.Tensor) -> torch.Tensor:
     return g
 
 
-def _features(guide: torch.Tensor, b_albedo: float, b_normal: float, b_depth: float, dtype: torch.dtype) -> torch.Tensor:
-    """G-buffers scaled by their bandwidths: albedo clamped to [0, 1], depth divided by the
-    image's maximum ([code]); then ``|f_i - f_c|^2 / 2`` is the exponent of Eq. 6."""
+def _features(guide: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``(B, 7, H, W)`` G-buffers as [code] feeds them: albedo clamped to [0, 1], normal, depth
+    divided by the image's maximum."""
     g = guide.to(dtype)
     albedo, normal, depth = g[:, :3].clamp(0, 1), g[:, 3:6], g[:, 6:7]
     d_max = depth.amax(dim=(1, 2, 3), keepdim=True)
     depth = torch.where(d_max > 0, depth / d_max.clamp_min(torch.finfo(dtype).tiny), depth)
-    return torch.cat([albedo / b_albedo, normal / b_normal, depth / b_depth], 1)
+    return torch.cat([albedo, normal, depth], 1)
 
 
-def _cb_weights(f: torch.Tensor, radius: int, b_space: float):
-    """``weight(dy, dx)`` -> ``w^cb_delta`` ``(B, 1, H, W)`` (paper 002, Eq. 6), zero outside."""
+def _scaled(f: torch.Tensor, bands: tuple[float, float, float]) -> torch.Tensor:
+    """Features divided by their bandwidths ``(b_rho x3, b_n x3, b_d)``: then ``|f_i - f_c|^2 / 2``
+    is the G-buffer part of the exponent of Eq. 6."""
+    b_albedo, b_normal, b_depth = bands
+    scale = f.new_tensor([b_albedo] * 3 + [b_normal] * 3 + [b_depth]).view(1, GUIDE_CHANNELS, 1, 1)
+    return f / scale
+
+
+def _offsets(n: int, r: int, border: str, like: torch.Tensor) -> torch.Tensor:
+    """``(2r+1, n)``: ``position(j + k - r) - j`` along one axis, where ``position`` is the pixel the
+    window reads (the mirrored one for ``"reflect"``, as [code]; for ``"truncate"`` just ``k - r``)."""
+    src = mirror_index(n, r) if border == "reflect" else range(-r, n + r)
+    pos = torch.tensor(list(src), dtype=like.dtype, device=like.device)
+    j = torch.arange(n, dtype=like.dtype, device=like.device)
+    return torch.stack([pos[k : k + n] - j for k in range(2 * r + 1)])
+
+
+class _Window:
+    """Per-tap quantities of a ``(2r+1)^2`` window over ``(B, *, H, W)`` G-buffers: padded
+    features and the ``(H, W)`` pixel offsets ``(oy, ox)`` of each tap."""
+
+    def __init__(self, f: torch.Tensor, radius: int, border: str) -> None:
+        self.size = H, W = f.shape[2], f.shape[3]
+        self.f, self.f_pad = f, pad_window(f, radius, border)
+        self.oy, self.ox = _offsets(H, radius, border, f), _offsets(W, radius, border, f)
+
+    def diff(self, dy: int, dx: int) -> torch.Tensor:
+        """``f_{c+delta} - f_c`` ``(B, *, H, W)`` (meaningless outside the image for "truncate")."""
+        H, W = self.size
+        return self.f_pad[..., dy : dy + H, dx : dx + W] - self.f
+
+    def offset(self, dy: int, dx: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(H, 1)`` and ``(1, W)`` pixel offsets of tap ``(dy, dx)``."""
+        return self.oy[dy].unsqueeze(1), self.ox[dx].unsqueeze(0)
+
+
+def _cb_weights(f: torch.Tensor, radius: int, b_space: float, border: str):
+    """``weight(dy, dx)`` -> ``w^cb_delta`` ``(B, 1, H, W)`` (paper 002, Eq. 6) from bandwidth-scaled
+    features ``f``; zero outside the image for ``"truncate"``."""
     r = radius
     H, W = f.shape[2:]
-    f_pad = F.pad(f, (r, r, r, r))
-    valid = F.pad(torch.ones(1, 1, H, W, dtype=f.dtype, device=f.device), (r, r, r, r))
+    win = _Window(f, r, border)
+    inside = None if border == "reflect" else pad_window(f.new_ones(1, 1, H, W), r, "truncate")
 
     def weight(dy: int, dx: int) -> torch.Tensor:
-        spatial = ((dy - r) ** 2 + (dx - r) ** 2) / (2.0 * b_space**2)
-        d2 = (f_pad[..., dy : dy + H, dx : dx + W] - f).square().sum(1, keepdim=True)
-        return torch.exp(d2.mul_(-0.5).sub_(spatial)).mul_(valid[..., dy : dy + H, dx : dx + W])
+        oy, ox = win.offset(dy, dx)
+        spatial = (oy.square() + ox.square()) / (2.0 * b_space**2)
+        w = torch.exp(win.diff(dy, dx).square_().sum(1, keepdim=True).mul_(-0.5).sub_(spatial))
+        return w if inside is None else w.mul_(inside[..., dy : dy + H, dx : dx + W])
 
     return weight
 
@@ -98,9 +146,9 @@ def _space_bandwidth(radius: int, sigma_space: float | None) -> float:
 
 
 def _cross_bilateral_taps(guide: torch.Tensor, radius: int, b_space: float, bands: tuple[float, float, float],
-                          dtype: torch.dtype, max_table_bytes: int = 0) -> _Taps:
-    f = _features(guide, *bands, dtype)
-    weight = _cb_weights(f, radius, b_space)
+                          dtype: torch.dtype, border: str, max_table_bytes: int = 0) -> _Taps:
+    f = _scaled(_features(guide, dtype), bands)
+    weight = _cb_weights(f, radius, b_space, border)
     K = 2 * radius + 1
     B, _, H, W = f.shape
     if K * K * B * H * W * f.element_size() <= max_table_bytes:  # one pass: weights, then normalise
@@ -108,7 +156,7 @@ def _cross_bilateral_taps(guide: torch.Tensor, radius: int, b_space: float, band
         for k in range(K * K):
             table[k] = weight(*divmod(k, K))
         table /= table.sum(0)  # paper 002, Eq. 5
-        taps = _Taps(radius, (H, W), lambda dy, dx: table[dy * K + dx])
+        taps = _Taps(radius, (H, W), lambda dy, dx: table[dy * K + dx], border)
         taps.table = table
         return taps
     S0 = sum(weight(*divmod(k, K)) for k in range(K * K))  # >= 1: the centre weighs 1
@@ -116,23 +164,27 @@ def _cross_bilateral_taps(guide: torch.Tensor, radius: int, b_space: float, band
     def tap(dy: int, dx: int) -> torch.Tensor:
         return weight(dy, dx).div_(S0)  # paper 002, Eq. 5
 
-    return _Taps(radius, (H, W), tap)
+    return _Taps(radius, (H, W), tap, border)
 
 
-def _regression_taps(guide: torch.Tensor, radius: int, b_space: float, bands: tuple[float, float, float], dtype: torch.dtype) -> _Taps:
+def _regression_taps(guide: torch.Tensor, radius: int, b_space: float, bands: tuple[float, float, float],
+                     dtype: torch.dtype, border: str) -> _Taps:
     """Taps of the G-buffer local linear regression: rows ``x = [1, g_i - g_c, delta / r]``
-    (10 columns), ``M = sum w x x^T + ridge I``, ``l_{i|c} = w_{i|c} x_i^T M^{-1} e_1``."""
+    (10 columns, raw G-buffer differences as [code]), ``M = sum w x x^T + ridge I``,
+    ``l_{i|c} = w_{i|c} x_i^T M^{-1} e_1``."""
     r = radius
-    f = _features(guide, *bands, torch.float64)
-    weight = _cb_weights(f, r, b_space)
+    f = _features(guide, torch.float64)
+    weight = _cb_weights(_scaled(f, bands), r, b_space, border)
+    win = _Window(f, r, border)
     B, n_f, H, W = f.shape
-    f_pad = F.pad(f, (r, r, r, r))
     scale = max(r, 1)
 
     def rows(dy: int, dx: int) -> torch.Tensor:  # (B, 10, H, W)
         one = torch.ones(B, 1, H, W, dtype=f.dtype, device=f.device)
-        offset = torch.tensor([(dy - r) / scale, (dx - r) / scale], dtype=f.dtype, device=f.device)
-        return torch.cat([one, f_pad[..., dy : dy + H, dx : dx + W] - f, offset.view(1, 2, 1, 1).expand(B, 2, H, W)], 1)
+        oy, ox = win.offset(dy, dx)
+        offset = torch.stack(torch.broadcast_tensors(oy, ox)).div_(scale).expand(B, 2, H, W)
+        # raw differences, not scaled by the bandwidths: the 1e-3 ridge is in these units ([code])
+        return torch.cat([one, win.diff(dy, dx), offset], 1)
 
     n = n_f + 3
     M = _RIDGE * torch.eye(n, dtype=f.dtype, device=f.device).view(1, n, n, 1, 1).expand(B, n, n, H, W).clone()
@@ -148,11 +200,18 @@ def _regression_taps(guide: torch.Tensor, radius: int, b_space: float, bands: tu
     def tap(dy: int, dx: int) -> torch.Tensor:
         return (weight(dy, dx) * (rows(dy, dx) * u).sum(1, keepdim=True)).to(dtype)
 
-    return _Taps(r, (H, W), tap)
+    return _Taps(r, (H, W), tap, border)
 
 
-def _denoise(builder, noisy, guide, radius, sigma_space, bands, clamp_min, impl, max_cache_bytes, check_finite, what):
+def _check_border(border: str) -> None:
+    if border not in BORDERS:
+        raise ValueError(f"border must be one of {BORDERS}, got {border!r}")
+
+
+def _denoise(builder, noisy, guide, radius, sigma_space, bands, clamp_min, border, impl, max_cache_bytes,
+             check_finite, what):
     check_hparams(radius, 1.0, impl, max_cache_bytes)
+    _check_border(border)
     for name, b in zip(("sigma_albedo", "sigma_normal", "sigma_depth"), bands):
         if not (math.isfinite(b) and b > 0):
             raise ValueError(f"{name} must be > 0, got {b!r}")
@@ -163,9 +222,9 @@ def _denoise(builder, noisy, guide, radius, sigma_space, bands, clamp_min, impl,
     g = _check_guide(guide, y)
     with torch.no_grad(), serial_for(g.numel()):
         if builder is _cross_bilateral_taps and impl != "taps":
-            taps = builder(g, radius, b_space, bands, y.dtype, max_cache_bytes)
+            taps = builder(g, radius, b_space, bands, y.dtype, border, max_cache_bytes)
         else:
-            taps = builder(g, radius, b_space, bands, y.dtype)
+            taps = builder(g, radius, b_space, bands, y.dtype, border)
         if taps.table is None:
             choose_table(taps, y, impl, max_cache_bytes, what)
     return _finish(apply_taps(y, taps), clamp_min, noisy)
@@ -180,6 +239,7 @@ def cross_bilateral_denoise(
     sigma_albedo: float = 0.05,
     sigma_normal: float = 0.1,
     sigma_depth: float = 0.1,
+    border: str = "truncate",
     impl: str = "auto",
     max_cache_bytes: int = 2**30,
     check_finite: bool = True,
@@ -189,10 +249,12 @@ def cross_bilateral_denoise(
     Args:
         noisy: the noisy render.
         guide: G-buffers from :func:`torchir.functions.render_gbuffers` (albedo, normal, depth).
-        radius: window half-width (window ``2r+1``, truncated at the border).
+        radius: window half-width (window ``2r+1``).
         sigma_space: ``b_q`` in pixels (default ``radius / 3``).
         sigma_albedo, sigma_normal, sigma_depth: ``b_rho``, ``b_n``, ``b_d`` (depth is divided
             by the image's maximum depth first).
+        border: ``"truncate"`` (window cut off at the image border) or ``"reflect"`` (mirrored
+            pixels, spatial weight from their own position: the authors' released code).
         impl, max_cache_bytes, check_finite: as :func:`torchir.modules.target_aware_denoise`.
 
     Shape:
@@ -204,8 +266,8 @@ def cross_bilateral_denoise(
         torch.Size([1, 3, 16, 16])
     """
     bands = (sigma_albedo, sigma_normal, sigma_depth)
-    return _denoise(_cross_bilateral_taps, noisy, guide, radius, sigma_space, bands, None, impl, max_cache_bytes,
-                    check_finite, "cross_bilateral_denoise")
+    return _denoise(_cross_bilateral_taps, noisy, guide, radius, sigma_space, bands, None, border, impl,
+                    max_cache_bytes, check_finite, "cross_bilateral_denoise")
 
 
 def gbuffer_regression_denoise(
@@ -217,14 +279,18 @@ def gbuffer_regression_denoise(
     sigma_normal: float = 0.1,
     sigma_depth: float = 0.1,
     clamp_min: float | None = 0.0,
+    border: str = "truncate",
     impl: str = "auto",
     max_cache_bytes: int = 2**30,
     check_finite: bool = True,
 ) -> torch.Tensor:
     """Local linear regression on G-buffers with cross-bilateral weights (paper 002, Sec. 5,
     Moon et al. 2014): per pixel, ``f~_i ~ a + beta . [g_i - g_c, (i - c)/r]`` fitted with
-    weights ``w^cb`` (Eq. 6) and ridge ``1e-3``; the output is ``a``. Arguments as
-    :func:`cross_bilateral_denoise`, plus ``clamp_min`` (output clamp, ``None`` = off).
+    weights ``w^cb`` (Eq. 6) and ridge ``1e-3`` on every diagonal entry; the output is ``a``.
+    As the released code, ``g`` are the raw G-buffers (albedo clamped to [0, 1], depth / max
+    depth), not divided by the bandwidths, so the ridge acts in those units. Arguments as
+    :func:`cross_bilateral_denoise`, plus ``clamp_min`` (output clamp ``max(clamp_min, a)`` with
+    gradient ``1[a >= clamp_min]``; ``None`` = off).
 
     Example:
         >>> guide = torch.rand(1, 7, 16, 16)
@@ -232,8 +298,8 @@ def gbuffer_regression_denoise(
         torch.Size([1, 3, 16, 16])
     """
     bands = (sigma_albedo, sigma_normal, sigma_depth)
-    return _denoise(_regression_taps, noisy, guide, radius, sigma_space, bands, clamp_min, impl, max_cache_bytes,
-                    check_finite, "gbuffer_regression_denoise")
+    return _denoise(_regression_taps, noisy, guide, radius, sigma_space, bands, clamp_min, border, impl,
+                    max_cache_bytes, check_finite, "gbuffer_regression_denoise")
 
 
 # --------------------------------------------------------------------------------- modules
@@ -259,6 +325,7 @@ class CrossBilateralDenoiser(nn.Module):
         sigma_albedo: float = 0.05,
         sigma_normal: float = 0.1,
         sigma_depth: float = 0.1,
+        border: str = "truncate",
         impl: str = "auto",
         max_cache_bytes: int = 2**30,
         check_finite: bool = True,
@@ -266,14 +333,15 @@ class CrossBilateralDenoiser(nn.Module):
     ) -> None:
         super().__init__()
         check_hparams(radius, 1.0, impl, max_cache_bytes)
-        self.radius, self.sigma_space = radius, sigma_space
+        _check_border(border)
+        self.radius, self.sigma_space, self.border = radius, sigma_space, border
         self.sigma_albedo, self.sigma_normal, self.sigma_depth = sigma_albedo, sigma_normal, sigma_depth
         self.impl, self.max_cache_bytes, self.check_finite, self.enabled = impl, max_cache_bytes, check_finite, enabled
 
     def _options(self) -> dict[str, Any]:
         return dict(radius=self.radius, sigma_space=self.sigma_space, sigma_albedo=self.sigma_albedo,
-                    sigma_normal=self.sigma_normal, sigma_depth=self.sigma_depth, impl=self.impl,
-                    max_cache_bytes=self.max_cache_bytes, check_finite=self.check_finite)
+                    sigma_normal=self.sigma_normal, sigma_depth=self.sigma_depth, border=self.border,
+                    impl=self.impl, max_cache_bytes=self.max_cache_bytes, check_finite=self.check_finite)
 
     def forward(self, noisy: torch.Tensor, target: torch.Tensor | None = None, guide: torch.Tensor | None = None,
                 views: Sequence[Any] | None = None) -> torch.Tensor:

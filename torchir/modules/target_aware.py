@@ -55,17 +55,74 @@ def serial_for(numel: int) -> Iterator[None]:
 
 
 # ----------------------------------------------------------------------------- tap machinery
+def mirror_index(n: int, r: int) -> list[int]:
+    """Source pixel of each of the ``n + 2r`` positions of an axis padded by ``r`` on both sides,
+    mirrored about the edge pixels without repeating them (numpy ``mode="reflect"``: ``-1 -> 1``,
+    ``n -> n - 2``), as the authors' code of paper 002 does; reflected again when ``r >= n``."""
+    if n == 1:
+        return [0] * (1 + 2 * r)
+    period = 2 * (n - 1)
+    return [m if m < n else period - m for m in (k % period for k in range(-r, n + r))]
+
+
+def _mirror_runs(n: int, r: int) -> list[tuple[int, int, int, bool]]:
+    """``mirror_index`` as maximal runs ``(padded start, source start, length, reversed)`` of
+    consecutive source pixels, so the adjoint can add whole slices (no atomics, deterministic)."""
+    index, runs, start = mirror_index(n, r), [], 0
+    while start < len(index):
+        end = start + 1
+        step = index[end] - index[start] if end < len(index) else 1
+        if abs(step) == 1:
+            while end < len(index) and index[end] - index[end - 1] == step:
+                end += 1
+        runs.append((start, min(index[start], index[end - 1]), end - start, step < 0))
+        start = end
+    return runs
+
+
+def pad_window(x: torch.Tensor, r: int, border: str) -> torch.Tensor:
+    """``(..., H + 2r, W + 2r)``: zeros outside the image (``"truncate"``) or mirrored pixels."""
+    if border == "truncate":
+        return F.pad(x, (r, r, r, r))
+    H, W = x.shape[-2:]
+    rows = torch.tensor(mirror_index(H, r), device=x.device)
+    cols = torch.tensor(mirror_index(W, r), device=x.device)
+    return x.index_select(-2, rows).index_select(-1, cols)
+
+
+def _fold_axis(x: torch.Tensor, dim: int, n: int, r: int) -> torch.Tensor:
+    """Adjoint of mirror-padding axis ``dim`` (length ``n + 2r`` -> ``n``)."""
+    shape = list(x.shape)
+    shape[dim] = n
+    out = x.new_zeros(shape)
+    for start, src, length, reverse in _mirror_runs(n, r):
+        part = x.narrow(dim, start, length)
+        out.narrow(dim, src, length).add_(part.flip(dim) if reverse else part)
+    return out
+
+
+def unpad_window(x_pad: torch.Tensor, r: int, border: str) -> torch.Tensor:
+    """The exact adjoint of :func:`pad_window`: crop, or add each mirrored pixel back to its source."""
+    H, W = x_pad.shape[-2] - 2 * r, x_pad.shape[-1] - 2 * r
+    if border == "truncate":
+        return x_pad[..., r : r + H, r : r + W].contiguous()
+    return _fold_axis(_fold_axis(x_pad, x_pad.dim() - 1, W, r), x_pad.dim() - 2, H, r)
+
+
 class _Taps:
     """The taps ``l_delta(c)`` of a linear smoother over a ``(2r+1)^2`` window.
 
     ``tap(dy, dx)`` returns ``l_delta`` for the offset ``delta = (dy - r, dx - r)`` as a tensor
     broadcastable to ``(B, C, H, W)``; ``l_delta(c)`` multiplies the input at pixel ``c + delta``
-    (zero outside the image). With ``table`` the taps are read from memory, else computed.
+    (zero outside the image for ``border="truncate"``, the mirrored pixel for ``"reflect"``).
+    With ``table`` the taps are read from memory, else computed.
     """
 
-    def __init__(self, radius: int, size: tuple[int, int], tap: Callable[[int, int], torch.Tensor]) -> None:
+    def __init__(self, radius: int, size: tuple[int, int], tap: Callable[[int, int], torch.Tensor],
+                 border: str = "truncate") -> None:
         self.radius = radius
         self.size = size
+        self.border = border
         self._tap = tap
         self.table: torch.Tensor | None = None  # (K*K, B, C', H, W)
 
@@ -96,7 +153,7 @@ class _Taps:
     def gather(self, y: torch.Tensor, squared: bool = False) -> torch.Tensor:
         """``out_c = sum_delta l_delta(c) y_{c+delta}`` (paper 002, Eq. 11)."""
         r, (H, W) = self.radius, self.size
-        y_pad = F.pad(y, (r, r, r, r))
+        y_pad = pad_window(y, r, self.border)
         out = torch.zeros_like(y)
         with serial_for(y.numel()):
             for dy, dx, l in self.taps(squared):
@@ -105,13 +162,13 @@ class _Taps:
 
     def scatter(self, g: torch.Tensor) -> torch.Tensor:
         """The transpose: ``grad_{c+delta} += l_delta(c) g_c`` (paper 002, Eq. 12), as slice-adds
-        into a padded buffer: deterministic, no atomics."""
+        into a padded buffer, then the adjoint of the padding: deterministic, no atomics."""
         r, (H, W) = self.radius, self.size
         g_pad = g.new_zeros(g.shape[:-2] + (H + 2 * r, W + 2 * r))
         with serial_for(g.numel()):
             for dy, dx, l in self.taps():
                 g_pad[..., dy : dy + H, dx : dx + W].addcmul_(l, g)
-        return g_pad[..., r : r + H, r : r + W].contiguous()
+        return unpad_window(g_pad, r, self.border)
 
 
 class _Gather(torch.autograd.Function):
@@ -350,8 +407,12 @@ def _check_options(order: int, weight_mode: str, var_floor: float, clamp_min: fl
 
 
 def _finish(out: torch.Tensor, clamp_min: float | None, like: torch.Tensor) -> torch.Tensor:
-    if clamp_min is not None:  # [code] f^ <- max(0, f^); its gradient is 1[f^ > clamp_min]
-        out = torch.where(out > clamp_min, out, out.new_tensor(clamp_min))
+    """Output clamp ``max(clamp_min, f^)`` and the caller's layout."""
+    if clamp_min is not None:
+        # [code] clamps with dr.maximum(0.0, f^), whose derivative w.r.t. f^ is 1 at equality: so
+        # the gradient is 1[f^ >= clamp_min]. A window whose render is exactly 0 under a non-black
+        # target (e.g. a reflectance at its lower bound) then still gets a signal.
+        out = torch.where(out >= clamp_min, out, out.new_tensor(clamp_min))
     return out.squeeze(0) if like.dim() == 3 else out
 
 
@@ -387,7 +448,8 @@ def target_aware_denoise(
         weight_mode: ``"rgb"`` (one weight per pixel pair from the first 3 channels) or
             ``"per_channel"``.
         var_floor: floor of the weighted target variance in the 2x2 solve (flat windows).
-        clamp_min: output clamp ``max(clamp_min, f^)``; ``None`` = the pure linear smoother.
+        clamp_min: output clamp ``max(clamp_min, f^)``, gradient ``1[f^ >= clamp_min]`` (as the
+            released code); ``None`` = the pure linear smoother.
         mask: bool ``(H,W)`` or ``(B|1,1,H,W)``: ``False`` pixels take part in no regression and
             pass through unchanged (background, invalid pixels).
         impl: ``"auto"`` (tap table when it fits ``max_cache_bytes``, else taps on the fly),
