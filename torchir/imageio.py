@@ -119,15 +119,24 @@ def write_image(path: str | Path, image: torch.Tensor, colorspace: ColorSpace = 
     pixel_format = formats.Y if array.shape[-1] == 1 else formats.RGB
     encoded = path.suffix.lower() in ENCODED_SUFFIXES
     srgb = colorspace == "srgb" or (colorspace == "auto" and encoded)
-    if encoded:
+    if srgb:
+        array = _srgb_encode(np.clip(array * exposure, 0.0, 1.0) if encoded else array)
+    elif encoded:
         array = np.clip(array * exposure, 0.0, 1.0)
-    bitmap = mi.Bitmap(array, pixel_format)
     if encoded:
-        bitmap = bitmap.convert(pixel_format, mi.Struct.Type.UInt8, srgb_gamma=srgb)
-    elif srgb:  # a float file that the caller wants sRGB-encoded (rare, but symmetric with read_image)
-        bitmap = bitmap.convert(pixel_format, mi.Struct.Type.Float32, srgb_gamma=True)
+        # round to the nearest code ourselves: Mitsuba's float -> uint8 conversion is off by up to
+        # one code (it gave 187 for 187.5 and 224 for 224.6)
+        array = np.rint(array * 255.0).astype(np.uint8)
+    bitmap = mi.Bitmap(array, pixel_format)
+    bitmap.set_srgb_gamma(srgb)
     bitmap.write(str(path))
     return path
+
+
+def _srgb_encode(x: np.ndarray) -> np.ndarray:
+    """The sRGB transfer curve (IEC 61966-2-1), for values >= 0."""
+    x = np.maximum(x, 0.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
 
 
 def save_png(path: str | Path, image: torch.Tensor, exposure: float = 1.0) -> Path:

@@ -248,7 +248,7 @@ class Scene:
             parser.transform_all(config, state)
             if texture_storage == "float":
                 for node in state.nodes:
-                    if node.props.plugin_name() == "bitmap" and not node.props.has_property("format"):
+                    if node.props.plugin_name() == "bitmap" and "format" not in node.props:
                         node.props["format"] = "variant"
             mi_scene = parser.instantiate(config, state)
         return cls(mi_scene, name=path.stem)
