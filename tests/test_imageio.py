@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import torchir
-from torchir.imageio import read_image, save_png, write_image
+from torchir.training import load_image  # how targets are read (it existed before read_image)
 
 # Largest slope of the sRGB decoding curve, d(linear)/d(encoded), reached at encoded = 1:
 # (2.4 / 1.055) * ((1 + 0.055) / 1.055) ** 1.4 = 2.275. Half a code step of an n-bit file is
@@ -27,23 +27,31 @@ def ramp() -> torch.Tensor:
     return torch.stack([x, x.flip(0), 0.25 + 0.5 * x]).unsqueeze(1).expand(3, 4, 64).contiguous()
 
 
-def _write_16bit_png(path, image: torch.Tensor) -> None:
+def _write_png(path, image: torch.Tensor, bits: int = 8) -> None:
+    """An sRGB PNG written independently of torchir: the exact curve, rounded to the nearest code
+    (Mitsuba's own float -> integer conversion is off by up to a code)."""
     import mitsuba as mi
 
-    # encoded exactly and rounded to the nearest code (Mitsuba's own conversion is off by a code)
     x = image.permute(1, 2, 0).double().numpy()
     encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    bitmap = mi.Bitmap(np.ascontiguousarray(np.rint(encoded * 65535).astype(np.uint16)), mi.Bitmap.PixelFormat.RGB)
+    dtype = np.uint8 if bits == 8 else np.uint16
+    bitmap = mi.Bitmap(np.ascontiguousarray(np.rint(encoded * (2**bits - 1)).astype(dtype)), mi.Bitmap.PixelFormat.RGB)
     bitmap.set_srgb_gamma(True)
     bitmap.write(str(path))
 
 
-def test_png_16bit_png_and_exr_read_back_as_the_same_linear_image(tmp_path, ramp):
-    exr = read_image(write_image(tmp_path / "ramp.exr", ramp))
+def _write_exr(path, image: torch.Tensor) -> None:
+    import mitsuba as mi
+
+    mi.Bitmap(np.ascontiguousarray(image.permute(1, 2, 0).numpy()), mi.Bitmap.PixelFormat.RGB).write(str(path))
+
+
+def test_png_16bit_png_and_exr_targets_read_back_as_the_same_linear_image(tmp_path, ramp):
+    _write_exr(tmp_path / "ramp.exr", ramp)
+    _write_png(tmp_path / "ramp.png", ramp, bits=8)
+    _write_png(tmp_path / "ramp16.png", ramp, bits=16)
+    exr, png, png16 = (load_image(tmp_path / f) for f in ("ramp.exr", "ramp.png", "ramp16.png"))
     assert torch.equal(exr, ramp)  # float files hold the values as they are
-    png = read_image(write_image(tmp_path / "ramp.png", ramp))
-    _write_16bit_png(tmp_path / "ramp16.png", ramp)
-    png16 = read_image(tmp_path / "ramp16.png")
     assert (png - exr).abs().max() <= _bound(8)
     assert (png16 - exr).abs().max() <= _bound(16)
     # the value the issue reported: linear 0.508 must not come back as 0.222
@@ -51,7 +59,16 @@ def test_png_16bit_png_and_exr_read_back_as_the_same_linear_image(tmp_path, ramp
     assert png[0, 0, i] == pytest.approx(float(ramp[0, 0, i]), abs=_bound(8))
 
 
+def test_write_image_round_trips_within_half_a_code(tmp_path, ramp):
+    from torchir.imageio import read_image, write_image
+
+    assert torch.equal(read_image(write_image(tmp_path / "ramp.exr", ramp)), ramp)
+    assert (read_image(write_image(tmp_path / "ramp.png", ramp)) - ramp).abs().max() <= _bound(8)
+
+
 def test_jpeg_reads_back_like_the_exr_within_its_compression(tmp_path, ramp):
+    from torchir.imageio import read_image, write_image
+
     exr = read_image(write_image(tmp_path / "ramp.exr", ramp))
     jpg = read_image(write_image(tmp_path / "ramp.jpg", ramp))
     # JPEG is lossy on top of the 8-bit quantisation: a smooth ramp stays within a few codes;
@@ -61,6 +78,8 @@ def test_jpeg_reads_back_like_the_exr_within_its_compression(tmp_path, ramp):
 
 
 def test_colorspace_override(tmp_path, ramp):
+    from torchir.imageio import read_image, write_image
+
     write_image(tmp_path / "ramp.png", ramp)
     raw = read_image(tmp_path / "ramp.png", colorspace="linear")  # the stored (encoded) values / 255
     encoded = torch.where(ramp <= 0.0031308, 12.92 * ramp, 1.055 * ramp.pow(1 / 2.4) - 0.055)
@@ -78,6 +97,8 @@ def test_colorspace_override(tmp_path, ramp):
 def test_alpha_and_grey(tmp_path):
     import mitsuba as mi
 
+    from torchir.imageio import read_image, write_image
+
     rgba = np.full((4, 4, 4), 0.5, np.float32)
     mi.Bitmap(rgba, mi.Bitmap.PixelFormat.RGBA).write(str(tmp_path / "opaque.exr"))
     rgba[..., 3] = 1.0
@@ -93,6 +114,8 @@ def test_alpha_and_grey(tmp_path):
 
 
 def test_bad_input(tmp_path):
+    from torchir.imageio import read_image, save_png, write_image
+
     with pytest.raises(FileNotFoundError, match="image not found"):
         read_image(tmp_path / "none.png")
     with pytest.raises(ValueError, match="unsupported image type '.tif'"):
@@ -125,22 +148,24 @@ SCENE_XML = """<scene version="3.0.0">
 @pytest.fixture()
 def texture_files(tmp_path, ramp):
     (tmp_path / "scene.xml").write_text(SCENE_XML)
-    write_image(tmp_path / "tex8.png", ramp)
-    _write_16bit_png(tmp_path / "tex16.png", ramp)
-    write_image(tmp_path / "tex.exr", ramp)
+    _write_png(tmp_path / "tex8.png", ramp, bits=8)
+    _write_png(tmp_path / "tex16.png", ramp, bits=16)
+    _write_exr(tmp_path / "tex.exr", ramp)
     return tmp_path
 
 
 @pytest.mark.parametrize("name", ["tex8.png", "tex16.png", "tex.jpg", "tex.exr"])
 def test_every_texture_storage_binds_as_float(texture_files, ramp, name):
     if name == "tex.jpg":
-        write_image(texture_files / name, ramp)
+        import mitsuba as mi
+
+        mi.Bitmap(str(texture_files / "tex8.png")).write(str(texture_files / name))
     scene = torchir.Scene.from_file(texture_files / "scene.xml", texture=name)
     key = "wall.bsdf.reflectance.data"
     info = scene.info(key)
     assert info.type_name == "TensorXf" and info.bindable and info.differentiable
     # the float texture holds the file's linear values, as read_image reads them
-    expected = read_image(texture_files / name).permute(1, 2, 0)
+    expected = load_image(texture_files / name).permute(1, 2, 0)
     assert torch.allclose(scene.get(key), expected, atol=1e-6)
     texture = scene.get(key).requires_grad_()
     image = torchir.functions.render(scene, {key: texture}, spp=2, seed=0)

@@ -172,6 +172,8 @@ class ResultWriter(pl.Callback):
         from .results import write_results
 
         checkpoint = trainer.checkpoint_callback
+        if not trainer.loggers and checkpoint is None:
+            return  # a run without outputs (logger=False, no checkpointing): write nothing, as Lightning does
         if isinstance(checkpoint, ModelCheckpoint) and checkpoint.dirpath and trainer.global_step > 0:
             trainer.save_checkpoint(Path(checkpoint.dirpath) / f"{ModelCheckpoint.CHECKPOINT_NAME_LAST}{ModelCheckpoint.FILE_EXTENSION}")
         if trainer.is_global_zero:
