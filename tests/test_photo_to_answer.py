@@ -259,6 +259,13 @@ def test_relative_paths_resolve_against_the_config_file(tmp_path, monkeypatch):
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)
     assert _run(tmp_path / "out", str(tmp_path / "cfg" / "red_wall.yaml"), "--trainer.max_steps", "1", "--model.preview_spp", "2") == 0
+    # the checkpoint holds absolute paths: it loads from any working directory
+    other = tmp_path / "other"
+    other.mkdir()
+    monkeypatch.chdir(other)
+    last = tmp_path / "out" / "red_wall" / "version_0" / "checkpoints" / "last.ckpt"
+    assert cli.main(["export", str(last), "--out", str(other / "x"), "--no-images"]) == 0
+    assert "red.bsdf.reflectance.value" in _result(other / "x")["parameters"]
 
 
 def test_curves_start_at_step_zero_and_l2_logs_no_repeated_image_error(tmp_path):
