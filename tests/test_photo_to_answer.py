@@ -57,10 +57,13 @@ def test_png_and_exr_targets_give_the_same_answer(tmp_path):
         assert (answer - truth).norm() < 0.25 * (init - truth).norm()
 
 
-def test_saturated_photo_pixels_do_not_pull_a_light(tmp_path):
+@pytest.mark.parametrize("suffix", ["png", "jpg"])
+def test_saturated_photo_pixels_do_not_pull_a_light(tmp_path, suffix):
     """The lamp is in view and clips in the 8-bit photo: left out of the loss, the radiance
-    still converges to the truth (clipping noisy renders instead drove it to ~20)."""
-    assert _run(tmp_path, str(EXAMPLES / "light.yaml"), "--trainer.max_steps", "60") == 0
+    still converges to the truth (clipping noisy renders instead drove it to ~20; a per-channel
+    mask let the JPEG's lamp pixel (254, 255, 255) pull red to 8)."""
+    target = str(EXAMPLES / "room" / "targets" / f"light.{suffix}")
+    assert _run(tmp_path, str(EXAMPLES / "light.yaml"), "--trainer.max_steps", "60", "--data.targets", f"[{target}]") == 0
     radiance = torch.tensor(_result(tmp_path / "light" / "version_0")["parameters"]["light.emitter.radiance.value"])
     assert (radiance - 12.0).abs().max() < 1.0, radiance
 

@@ -175,7 +175,12 @@ class ResultWriter(pl.Callback):
         if not trainer.loggers and checkpoint is None:
             return  # a run without outputs (logger=False, no checkpointing): write nothing, as Lightning does
         if isinstance(checkpoint, ModelCheckpoint) and checkpoint.dirpath and trainer.global_step > 0:
-            trainer.save_checkpoint(Path(checkpoint.dirpath) / f"{ModelCheckpoint.CHECKPOINT_NAME_LAST}{ModelCheckpoint.FILE_EXTENSION}")
+            # ModelCheckpoint's own "last" file (it may carry a version suffix), registered with it so
+            # that it never writes a second one (last-v1.ckpt) beside ours
+            name = f"{ModelCheckpoint.CHECKPOINT_NAME_LAST}{ModelCheckpoint.FILE_EXTENSION}"
+            path = checkpoint.last_model_path or str(Path(checkpoint.dirpath) / name)
+            checkpoint.last_model_path = path
+            trainer.save_checkpoint(path)
         if trainer.is_global_zero:
             path = write_results(pl_module, pl_module.results_dir, trainer.global_step, images=False)
             print(f"[torchir] recovered values: {path}")

@@ -60,9 +60,10 @@ class ViewDataModule(pl.LightningDataModule):
             Relative paths are relative to the config file under ``torchir fit``.
         colorspace: ``auto`` (each file's own encoding), ``srgb`` or ``linear`` (see
             :func:`torchir.imageio.read_image`).
-        saturation: radiance at which the targets clipped: renders are clipped there too
-            before the loss, so over-exposed pixels of a photo (a visible lamp) do not pull the
-            fit down. ``auto``: 1.0 for 8/16-bit files, none for EXR and synthetic targets.
+        saturation: radiance at which the targets clipped. A target pixel with any channel
+            there (an over-exposed lamp in a photo) only bounds the radiance from below, so it
+            is left out of the loss. ``auto``: 1.0 for 8/16-bit files, none for EXR and
+            synthetic targets.
         views: sensor indices to fit (default: every sensor of the scene).
         views_per_step: views per optimiser step over all processes (default: all views).
         target_spp: samples per pixel of synthetic targets.

@@ -268,7 +268,10 @@ class InverseRenderingModule(pl.LightningModule):
                 # A clipped photo pixel only says "at least this bright": leave it out of the loss (the
                 # target's own value, no gradient). Clipping the noisy render instead would be biased,
                 # E[min(I, s)] < min(E[I], s), and pulls the fit (measured: a lamp of 12 fitted to ~20).
-                images = torch.where(targets >= saturation * SATURATED, targets, images)
+                # A pixel with any channel at the top code is left out whole: JPEG mixes codes across
+                # channels, so a clipped lamp can read (254, 255, 255) (measured: R fitted to 8 of 12).
+                clipped = (targets >= saturation * SATURATED).any(dim=-3, keepdim=True)
+                images = torch.where(clipped, targets, images)
             # of the render itself: a target-aware denoiser's output is pulled towards the target
             image_error = (images.detach() - targets).square().mean()
             if self.denoiser is not None:
