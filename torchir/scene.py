@@ -159,6 +159,27 @@ def _float_bitmaps(node: Any) -> Any:
     return out
 
 
+def _integrator_spec(spec: Mapping[str, Any]) -> dict[str, Any]:
+    """A validated ``{type: name, **properties}`` integrator override."""
+    if not isinstance(spec, Mapping) or not isinstance(spec.get("type"), str):
+        raise ValueError(f"an integrator override is {{type: name, ...properties}}, e.g. {{type: prb, max_depth: 3}}; got {spec!r}")
+    return dict(spec)
+
+
+def _override_integrator(state: Any, spec: dict[str, Any], path: Path) -> None:
+    """Replace the parsed scene's integrator node by ``spec`` (plugin name and properties)."""
+    nodes = [n for n in state.nodes if n.type == mi.ObjectType.Integrator]
+    if not nodes:
+        raise ValueError(f"{str(path)!r} has no <integrator> to override: add one to the file")
+    props = nodes[0].props
+    props.set_plugin_name(spec["type"])
+    for key in list(props.keys()):
+        props.remove_property(key)
+    for key, value in spec.items():
+        if key != "type":
+            props[key] = value
+
+
 def _unbindable_hint(name: str, type_name: str) -> str:
     """What to do instead of binding parameter ``name`` of Mitsuba type ``type_name``."""
     if type_name in ("TensorXu8", "TensorXf16"):
@@ -201,12 +222,16 @@ class Scene:
 
     # ----------------------------------------------------------------------------- loading
     @classmethod
-    def builtin(cls, name: str, resolution: int | tuple[int, int] | None = None, **options: Any) -> Scene:
+    def builtin(
+        cls, name: str, resolution: int | tuple[int, int] | None = None, override_integrator: Mapping[str, Any] | None = None,
+        **options: Any,
+    ) -> Scene:
         """A built-in procedural scene (see :func:`torchir.scenes.available`).
 
         Args:
             name: scene name, e.g. ``"cbox"``.
             resolution: ``H`` (square) or ``(H, W)``; each scene has a small default.
+            override_integrator: ``{type: ..., **properties}`` replacing the scene's integrator.
             options: scene-specific options (documented on each scene's builder).
         """
         from . import scenes
@@ -214,6 +239,8 @@ class Scene:
         entry = scenes.get(name)
         backend.variant()
         scene_dict = entry.build(resolution=resolution, **options)
+        if override_integrator is not None:
+            scene_dict["integrator"] = _integrator_spec(override_integrator)
         derived = scene_dict.pop("torchir_derived", ())
         scene = cls(mi.load_dict(scene_dict, optimize=False), name=name, description=entry.description)
         scene.derived = {d.name: d for d in derived}
@@ -221,7 +248,8 @@ class Scene:
 
     @classmethod
     def from_file(
-        cls, path: str | os.PathLike, optimize: bool = False, texture_storage: TextureStorage = "float", **scene_args: Any
+        cls, path: str | os.PathLike, optimize: bool = False, texture_storage: TextureStorage = "float",
+        override_integrator: Mapping[str, Any] | None = None, **scene_args: Any,
     ) -> Scene:
         """Load a Mitsuba 3 XML scene file.
 
@@ -250,20 +278,28 @@ class Scene:
                 for node in state.nodes:
                     if node.props.plugin_name() == "bitmap" and "format" not in node.props:
                         node.props["format"] = "variant"
+            if override_integrator is not None:
+                _override_integrator(state, _integrator_spec(override_integrator), path)
             mi_scene = parser.instantiate(config, state)
         return cls(mi_scene, name=path.stem)
 
     @classmethod
-    def from_dict(cls, scene_dict: Mapping[str, Any], optimize: bool = False, texture_storage: TextureStorage = "float") -> Scene:
-        """Load a Mitsuba 3 scene dictionary (``{"type": "scene", ...}``); ``texture_storage`` as
-        in :meth:`from_file`."""
+    def from_dict(
+        cls, scene_dict: Mapping[str, Any], optimize: bool = False, texture_storage: TextureStorage = "float",
+        override_integrator: Mapping[str, Any] | None = None,
+    ) -> Scene:
+        """Load a Mitsuba 3 scene dictionary (``{"type": "scene", ...}``); ``texture_storage`` and
+        ``override_integrator`` as in :meth:`from_file`."""
         if not isinstance(scene_dict, Mapping) or scene_dict.get("type") != "scene":
             raise ValueError("expected a Mitsuba scene dict with 'type': 'scene'")
         _check_texture_storage(texture_storage)
         backend.variant()
         if texture_storage == "float":
             scene_dict = _float_bitmaps(scene_dict)
-        return cls(mi.load_dict(dict(scene_dict), optimize=optimize))
+        scene_dict = dict(scene_dict)
+        if override_integrator is not None:  # the dict's "integrator" entry (Mitsuba's convention)
+            scene_dict["integrator"] = _integrator_spec(override_integrator)
+        return cls(mi.load_dict(scene_dict, optimize=optimize))
 
     # --------------------------------------------------------------------------- queries
     @property

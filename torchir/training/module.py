@@ -25,12 +25,12 @@ class NonFiniteLossError(RuntimeError):
     """The loss became NaN/Inf; the run stopped before applying that step."""
 
 
-def _load_scene(scene: str, resolution, scene_options: dict[str, Any]) -> Scene:
+def _load_scene(scene: str, resolution, scene_options: dict[str, Any], integrator: Optional[dict[str, Any]]) -> Scene:
     if scene.endswith(".xml"):
         if resolution is not None:
             raise ValueError("resolution applies to built-in scenes; set the film size in the XML file instead")
-        return Scene.from_file(scene, **scene_options)
-    return Scene.builtin(scene, resolution=resolution, **scene_options)
+        return Scene.from_file(scene, override_integrator=integrator, **scene_options)
+    return Scene.builtin(scene, resolution=resolution, override_integrator=integrator, **scene_options)
 
 
 class InverseRenderingModule(pl.LightningModule):
@@ -45,6 +45,9 @@ class InverseRenderingModule(pl.LightningModule):
         scene: a built-in scene name (``torchir.scenes.available()``) or a Mitsuba ``.xml`` path.
         resolution: film size of a built-in scene, ``H`` or ``[H, W]``.
         scene_options: builder options of a built-in scene, or ``$``-substitutions of an XML file.
+        integrator: ``{type: name, **properties}`` replacing the scene's integrator, so that a run
+            uses the cheapest one its parameters need (e.g. ``{type: prb_projective, guiding:
+            none, max_depth: 3}`` for a pose) without editing the scene file.
         derived: ``{label: {type: rigid | function, ...}}``: derived parameters declared on the
             scene before ``parameters`` are read (see :mod:`torchir.derived`), e.g. a shape's
             pose ``{type: rigid, shape: bunny}`` giving ``bunny.translation``/``.rotation``/``.scale``.
@@ -74,6 +77,7 @@ class InverseRenderingModule(pl.LightningModule):
         scene: str = "cbox",
         resolution: Optional[Union[int, tuple[int, int]]] = None,
         scene_options: Optional[dict[str, Any]] = None,
+        integrator: Optional[dict[str, Any]] = None,
         derived: Optional[dict[str, dict[str, Any]]] = None,
         parameters: Optional[dict[str, ParameterConfig]] = None,
         loss: Union[str, nn.Module, dict[str, Any]] = "l2",
@@ -94,7 +98,7 @@ class InverseRenderingModule(pl.LightningModule):
                 raise ValueError(f"model.{name} must be >= 1, got {value}")
         if lr <= 0:
             raise ValueError(f"model.lr must be > 0, got {lr}")
-        self.scene = _load_scene(scene, resolution, dict(scene_options or {}))
+        self.scene = _load_scene(scene, resolution, dict(scene_options or {}), integrator)
         for label, spec in (derived or {}).items():
             declare_derived(self.scene, label, spec)
         if parameters is None:
