@@ -297,3 +297,16 @@ def test_info_aligns_scene_descriptions(capsys):
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  ")]
     starts = {len(line) - len(line[2:].split(None, 1)[1]) for line in lines}
     assert len(lines) == len(torchir.scenes.available()) and len(starts) == 1
+
+
+def test_integrator_override_from_python_and_yaml(tmp_path):
+    scene = torchir.Scene.from_file(ROOM, override_integrator={"type": "prb_projective", "guiding": "none", "max_depth": 2})
+    assert type(scene.integrator).__name__ == "PathProjectiveIntegrator" and scene.integrator.max_depth == 2
+    assert "direct" in str(torchir.Scene.builtin("cbox", resolution=8, override_integrator={"type": "direct"}).integrator).lower()
+    module = InverseRenderingModule(scene=str(ROOM), integrator={"type": "prb", "max_depth": 2}, parameters={"red.bsdf.reflectance.value": {}})
+    assert module.scene.integrator.max_depth == 2
+    with pytest.raises(ValueError, match="integrator override is"):
+        torchir.Scene.from_file(ROOM, override_integrator={"max_depth": 2})
+    (tmp_path / "none.xml").write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    with pytest.raises(ValueError, match="has no <integrator> to override"):
+        torchir.Scene.from_file(tmp_path / "none.xml", override_integrator={"type": "prb"})
