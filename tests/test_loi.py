@@ -200,6 +200,41 @@ def test_gradcheck_float64(low_memory, border):
     assert torch.autograd.gradcheck(f, (x,))
 
 
+@pytest.mark.parametrize("low_memory", [False, True])
+def test_gradcheck_float64_with_uneven_term_weights(low_memory):
+    """The hand-written backward scales each term by its weight: with uniform weights a
+    backward that dropped them would still pass gradcheck, so these differ per term (one is
+    zero, which drops the term from the fused forward)."""
+    x = _rand(1, 2, 8, 8, lo=0.05, hi=0.95, dtype=D64).requires_grad_()
+    y = _rand(1, 2, 8, 8, seed=1, lo=0.05, hi=0.95, dtype=D64)
+    weights = [[0.3, 2.5, 0.0], [1.7, 0.05, 4.0]]
+    f = lambda t: loi_loss(t, y, alphas=(0, 1, 3), sigmas=(0, 1), beta=0.25, weights=weights, low_memory=low_memory, reduction="none")  # noqa: E731
+    assert torch.autograd.gradcheck(f, (x,))
+
+
+def test_term_weights_scale_value_and_gradient_per_term():
+    """E8: the total is ``sum w(sigma, alpha) E(sigma, alpha)``; by linearity so is its
+    gradient, each term's gradient taken alone (weight 1 on it, 0 elsewhere)."""
+    x = _rand(1, 3, 12, 10, lo=0.05, hi=0.95, dtype=D64).requires_grad_()
+    y = _rand(1, 3, 12, 10, seed=1, lo=0.05, hi=0.95, dtype=D64)
+    alphas, sigmas = (0, 2), (0, 1)
+    weights = torch.tensor([[0.5, 3.0], [2.0, 0.25]], dtype=D64)
+    m = LOILoss(alphas=alphas, sigmas=sigmas, weights=weights.tolist(), border="renormalize")
+    total = m(x, y)
+    (g_total,) = torch.autograd.grad(total, x)
+    terms = m.terms(x.detach(), y)
+    expected_value, expected_grad = 0.0, torch.zeros_like(x)
+    for i, s in enumerate(sigmas):
+        for j, a in enumerate(alphas):
+            one = [[float(i == k and j == l) for l in range(len(alphas))] for k in range(len(sigmas))]
+            value = loi_loss(x, y, alphas=alphas, sigmas=sigmas, weights=one, border="renormalize")
+            assert value.item() == pytest.approx(terms[(float(s), float(a))].item(), rel=1e-12)
+            expected_value += weights[i, j].item() * value.item()
+            expected_grad += weights[i, j] * torch.autograd.grad(value, x)[0]
+    assert total.item() == pytest.approx(expected_value, rel=1e-12)
+    torch.testing.assert_close(g_total, expected_grad, rtol=1e-10, atol=1e-14)
+
+
 def test_low_memory_matches_autograd_and_estimates_less_memory():
     x = _rand(2, 3, 16, 12, seed=3).requires_grad_()
     y = _rand(2, 3, 16, 12, seed=4)
@@ -303,6 +338,22 @@ def test_extremes_are_finite():
             loss = loi_loss(xg, y, alphas=(0, 1, 100), sigmas=(0, 100))
         loss.backward()
         assert torch.isfinite(loss) and torch.isfinite(xg.grad).all()
+    # Known values. Constant images give n_terms * |a - b| (renormalised borders), however
+    # small or thin; fireflies far beyond the range and its tail saturate: the loss no longer
+    # depends on how far (1e6 and 50 give the same value) and the gradient is exactly zero.
+    kw = dict(alphas=(0, 1, 100), sigmas=(0, 100), border="renormalize")
+    assert loi_loss(torch.zeros(1, 3, 1, 1), torch.ones(1, 3, 1, 1), **kw).item() == pytest.approx(6.0, rel=1e-4)
+    assert loi_loss(torch.zeros(1, 1, 3, 50), torch.full((1, 1, 3, 50), 0.5), **kw).item() == pytest.approx(3.0, rel=1e-4)
+    values = []
+    for v in (1e6, 50.0):
+        xg = torch.full((1, 3, 8, 8), v, requires_grad=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            loss = loi_loss(xg, torch.zeros(1, 3, 8, 8), **kw)
+        loss.backward()
+        assert torch.count_nonzero(xg.grad) == 0
+        values.append(loss.item())
+    assert values[0] == values[1] > 6 * 1.0  # beyond the whole range: more than a full-range step
 
 
 def test_out_of_range_saturates_and_warns_once():
@@ -327,6 +378,12 @@ def test_transforms(transform):
         loss = loi_loss(x, y, transform=transform)
     loss.backward()
     assert loss.item() > 0 and torch.isfinite(x.grad).all()
+    # E0: the transform is applied to both images before anything else
+    tau = {"identity": lambda t: t, "clamp": lambda t: t.clamp(0, 1), "reinhard": lambda t: t / (1 + t), "log1p": torch.log1p}.get(transform, transform)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plain = loi_loss(tau(x.detach()), tau(y), transform="identity")
+    assert loss.item() == pytest.approx(plain.item(), rel=1e-5)
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
@@ -380,7 +437,8 @@ def test_bad_images():
 
 def test_luminance_channels():
     x, y = _rand(1, 3, 8, 8), _rand(1, 3, 8, 8, seed=1)
-    assert torch.isfinite(loi_loss(x, y, channels="luminance"))
+    lum = lambda t: (t * torch.tensor([0.2126, 0.7152, 0.0722]).view(1, 3, 1, 1)).sum(1, keepdim=True)  # noqa: E731, Rec. 709
+    assert loi_loss(x, y, channels="luminance").item() == pytest.approx(loi_loss(lum(x), lum(y)).item(), rel=1e-5)
     with pytest.raises(ValueError, match="needs 3 channels"):
         loi_loss(x[:, :2], y[:, :2], channels="luminance")
 
@@ -417,6 +475,9 @@ def test_mitsuba_smoke_loi_backward_through_render(cbox, red):
     img = render(cbox, {"red.reflectance.value": red}, spp=4, seed=1)
     loss = LOILoss(transform="reinhard")(img, target)
     loss.backward()
-    assert torch.isfinite(red.grad).all() and red.grad.abs().sum() > 0
+    # The target wall is less red and much greener and bluer than the current one: descending
+    # the gradient must lower R and raise G and B.
+    assert torch.isfinite(red.grad).all()
+    assert red.grad[0] > 0 and red.grad[1] < 0 and red.grad[2] < 0, red.grad
     with pytest.raises(ValueError, match=r"\(H, W, C\)"):
         LOILoss()(img.permute(1, 2, 0), target.permute(1, 2, 0))

@@ -70,7 +70,16 @@ def test_stage1_adaptive_pmf_follows_the_parameter(cbox, red):
     mask = (moved > moved.mean()).flatten()
     assert float(adaptive.pdf[mask].sum()) > float(eq5.pdf[mask].sum()) + 0.05
     d = adaptive.diagnostics()
-    assert d["predicted_gain"] >= 1.0 and d["stage1_paths"] > 0 and d["stage1_seconds"] > 0
+    # E6: g = m sum a / (sum sqrt a)^2 >= 1 always, = 1 for a flat a = p1 p2. Here a sits on
+    # the ~27 % of pixels the albedo moves (the mask above): a flat a there would give
+    # g = 1 / 0.27 = 3.7 (measured 7.3, a is peaked inside it too).
+    assert d["predicted_gain"] > 2.0
+    # Stage 1 traces S one-path passes per low-res pixel of each level, twice (radiance and the
+    # derivative probe): 2 * 4 * (8^2 + 4^2) + ... for the 16x16 image's levels (16, 8, 4).
+    grids = adaptive.stage1_grids
+    assert d["stage1_paths"] == 2 * adaptive.stage1_spp * sum(h * w for h, w in grids)
+    assert eq5.diagnostics()["stage1_paths"] == eq5.stage1_spp * sum(h * w for h, w in grids)
+    assert d["stage1_seconds"] > 0
 
 
 def _sampled_gradient(scene, params, sampler, step, sensor_targets):
@@ -137,15 +146,23 @@ def _fit(tmp_path, steps, **model):
 
 
 def test_trainer_pixel_mode_reduces_parameter_error(tmp_path):
+    """Pixel mode moves the albedo towards the truth. Its bound comes from a seeds study (the
+    model's and the sampler's seed varied together over 0..19, offline): the final RMSE after
+    40 steps ranges 0.011-0.228 for an initial 0.261 (ratio <= 0.87), so "< 0.5 x initial"
+    failed 4 of 20 seeds of correct code; the bound here is the property itself, "< initial".
+    That a frozen per-step seed is not caught by it (its errors, 0.014-0.425, overlap) is
+    why tests/test_guards_training.py checks the seeds themselves."""
     model = {
         "parameters": {KEY: {"init": 0.3, "bounds": [0.0, 1.0]}},
         "sampler": {"type": "adaptive", "budget": 0.25, "refresh_every": 10, "seed": 0},
     }
     module, trainer = _fit(tmp_path, 40, **model)
     truth = module.ground_truth()
-    assert module.parameter_error(truth) < 0.5 * float((torch.full((3,), 0.3) - truth[KEY]).square().mean().sqrt())
+    assert module.parameter_error(truth) < float((torch.full((3,), 0.3) - truth[KEY]).square().mean().sqrt())
     metrics = trainer.callback_metrics
-    assert "sampler/ess_fraction" in metrics and 0 < float(metrics["sampler/ess_fraction"]) <= 1
+    # Every pixel keeps p >= alpha / m (alpha = 0.1), so no weight exceeds 1 / (N alpha):
+    # max_weight_ratio = N max w <= 10 (a pmf without the uniform mix breaks it).
+    assert "sampler/ess_fraction" in metrics and 0 < float(metrics["sampler/max_weight_ratio"]) <= 10.0 + 1e-4
     assert module.sampler.refreshes == 4  # steps 0, 10, 20, 30
 
 

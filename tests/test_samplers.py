@@ -65,6 +65,10 @@ def test_single_level_equals_explicit_computation():
     q = (p1.double() * p2.double()).sqrt()
     expected = 0.75 * q / q.sum() + 0.25 / (H * W)
     torch.testing.assert_close(s.pdf_image(), expected, rtol=1e-12, atol=1e-15)
+    # E6: predicted gain m sum a / (sum sqrt a)^2 with a = p1 p2
+    gain = H * W * float(q.square().sum()) / float(q.sum()) ** 2
+    assert s.diagnostics()["predicted_gain"] == pytest.approx(gain, rel=1e-9)
+    assert gain > 1.05  # the maps are not flat: the check has something to compare
 
 
 @pytest.mark.parametrize("which", ["p1", "p2"])
@@ -83,8 +87,11 @@ def test_nan_maps_warn_and_fall_back_never_nan_weights():
     s = _sampler()
     with pytest.warns(UserWarning, match="NaN/Inf"):
         s.update_from_maps(p1, torch.rand(1, H, W))
+    # the NaN level falls back to uniform: p1 is NaN there, so the whole pmf is uniform
+    torch.testing.assert_close(s.pdf, torch.full((H * W,), 1.0 / (H * W), dtype=torch.float64), rtol=1e-12, atol=0)
+    assert s.diagnostics()["uniform_levels"] >= 1
     batch = s.sample()
-    assert torch.isfinite(batch.weight).all() and float(s.pdf.min()) > 0
+    torch.testing.assert_close(batch.weight, torch.full((64,), 1.0 / 64), rtol=1e-6, atol=0)
 
 
 def test_one_hot_pixel_mass():
@@ -107,7 +114,7 @@ def test_bad_maps_raise():
         s.update_from_maps(torch.rand(1, H, W), torch.rand(1, H, W))
     with pytest.raises(ValueError, match="level"):
         s.update_from_maps([torch.rand(2, 4, 4)], [torch.rand(2, 4, 4), torch.rand(2, 2, 2)])
-    with pytest.raises(TypeError):
+    with pytest.raises(TypeError, match="p1 must be a torch tensor, got list"):
         s.update_from_maps([[1.0]], None)
 
 
@@ -193,8 +200,53 @@ def test_view_restriction_and_global_indices():
     s = _sampler(views=3, budget=500)
     batch = s.sample(views=[2])
     assert bool(((batch.index // (H * W)) == 2).all())
-    with pytest.raises(ValueError, match="views"):
+    # a uniform pmf restricted to one view: p_V = 1 / (H W), so w = 1 / (N m_V p_V) = 1 / N
+    torch.testing.assert_close(batch.weight, torch.full((500,), 1.0 / 500), rtol=1e-6, atol=0)
+    with pytest.raises(ValueError, match=r"views must be a non-empty subset of range\(3\)"):
         s.sample(views=[3])
+    with pytest.raises(ValueError, match=r"views must be a non-empty subset of range\(3\)"):
+        s.sample(views=[])
+
+
+def test_view_subset_weights_are_the_conditional_pmf():
+    """``w_n = 1 / (N m_V p_V[j_n])`` with ``m_V`` the subset's pixel count and ``p_V`` the pmf
+    conditioned on the subset's pixels, computed here independently of ``sample``."""
+    g = torch.Generator().manual_seed(5)
+    s = _sampler(views=3, budget=200)
+    s.update_from_maps(torch.rand(3, H, W, generator=g), torch.rand(3, H, W, generator=g))
+    subset = [0, 2]
+    batch = s.sample(views=[2, 0, 2])  # order and repeats do not matter
+    view = batch.index // (H * W)
+    assert set(view.tolist()) == set(subset)
+    conditional = s.pdf_image()[subset].reshape(-1)
+    conditional = conditional / conditional.sum()
+    local = torch.searchsorted(torch.tensor(subset), view) * H * W + batch.index % (H * W)
+    expected = 1.0 / (200 * len(subset) * H * W * conditional[local])
+    torch.testing.assert_close(batch.weight.double(), expected, rtol=1e-5, atol=0)
+
+
+def test_view_subset_estimate_is_unbiased_for_the_subset_mean():
+    """The mean over the subset's pixels, as a full render of that view batch gives. With the
+    per-draw standard error ``se`` of the 4000 independent estimates, a 4 se bound has a false
+    alarm rate ~6e-5; the estimate's spread here is ~1 % of the mean while weights built from
+    all 3 views' pixel count (or the subset pmf left unnormalised) are off by a factor 2/3
+    (or 3/2): caught at > 30 se."""
+    g = torch.Generator().manual_seed(6)
+    losses = torch.rand(3 * H * W, generator=g, dtype=torch.float64) ** 2
+    s = UniformPixelSampler(resolution=(H, W), views=3, budget=32, seed=2)
+    s_adaptive = AdaptivePixelSampler(resolution=(H, W), views=3, budget=32, seed=2)
+    s_adaptive.update_from_maps(torch.rand(3, H, W, generator=g), torch.rand(3, H, W, generator=g))
+    subset = [0, 1]
+    truth = float(losses.reshape(3, -1)[subset].mean())
+    for sampler in (s, s_adaptive):
+        est = []
+        for _ in range(4000):
+            batch = sampler.sample(views=subset)
+            est.append(float((batch.weight.double() * losses[batch.index]).sum()))
+        est = torch.tensor(est, dtype=torch.float64)
+        se = float(est.std()) / math.sqrt(est.numel())
+        assert se < 0.02 * truth  # power: a factor 2/3 or 3/2 error is > 15 se away
+        assert abs(float(est.mean()) - truth) < 4 * se, (float(est.mean()), truth, se)
 
 
 # ---------------------------------------------------------------------- unbiasedness
@@ -269,10 +321,14 @@ def test_variance_ordering_oracle_eq5_uniform():
 
 
 def test_zero_adjoint_gives_exactly_zero_gradient():
+    """A zero loss adjoint everywhere (a converged pixel set) gives the uniform pmf, hence
+    finite weights 1 / N, hence an exactly zero estimate (0 * Inf would be NaN)."""
     s = _sampler()
     s.update_from_maps(torch.zeros(1, H, W), torch.rand(1, H, W))
     batch = s.sample()
+    torch.testing.assert_close(batch.weight, torch.full((64,), 1.0 / 64), rtol=1e-6, atol=0)
     assert float((batch.weight * torch.zeros(H * W)[batch.index]).sum()) == 0.0
+    assert s.diagnostics()["predicted_gain"] == 1.0
 
 
 # --------------------------------------------------------------------------- schedule
@@ -285,7 +341,13 @@ def test_refresh_schedule_and_reshape():
             runs.append(step)
             s.last_update, s._signature = step, s._signature_of(params, None)  # what update() records
     assert runs == [0, 20, 40, 60]
-    assert s.due(41, {"tex": torch.zeros(8, 8, 3)})  # re-gridded texture: refresh at once
+    assert not s.due(60, params) and not s.due(61, params)  # just refreshed
+    assert s.due(61, {"tex": torch.zeros(8, 8, 3)})  # re-gridded texture: refresh at once
+    assert s.due(59, params)  # a step before the last refresh (a resumed or rewound run)
+    two = AdaptivePixelSampler(resolution=(H, W), views=2, budget=4, refresh_every=20)
+    two.last_update, two._signature = 0, two._signature_of(params, [0, 1])
+    assert not two.due(1, params, [0, 1]) and not two.due(1, params)  # None means every view
+    assert two.due(1, params, [1])  # another view set: its targets differ
     assert not UniformPixelSampler(resolution=(H, W), budget=4).due(0, params)
 
 
@@ -301,5 +363,11 @@ def test_stage1_grids():
 
 
 def test_pixel_batch_fields():
-    batch = UniformPixelSampler(resolution=(H, W), budget=3).sample()
-    assert isinstance(batch, PixelBatch) and batch.weight.dtype == torch.float32
+    s = UniformPixelSampler(resolution=(H, W), views=2, budget=3)
+    batch = s.sample()
+    assert isinstance(batch, PixelBatch) and batch.weight.dtype == torch.float32 and batch.index.dtype == torch.int64
+    assert batch.index.shape == batch.weight.shape == (3,)
+    assert bool(((batch.index >= 0) & (batch.index < 2 * H * W)).all())
+    torch.testing.assert_close(batch.weight, torch.full((3,), 1.0 / 3))  # 1 / (N m p), p = 1 / m
+    d = s.diagnostics()
+    assert d["ess_fraction"] == pytest.approx(1.0) and d["max_weight_ratio"] == pytest.approx(1.0)

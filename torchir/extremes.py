@@ -2,7 +2,9 @@
 
 Each :class:`Case` runs one piece (render, render_pixels, a sampler, a module, the trainer
 step) under one condition and expects either a finite result or a specific, clear exception;
-never a crash inside Dr.Jit and never a silent NaN. ``tests/test_extremes.py`` runs every
+never a crash inside Dr.Jit and never a silent NaN. Where the right value is known (a light
+switched off renders exactly zero, emission scales the image linearly, a constant pmf gives
+weights 1/N, a saturated LOI term has zero gradient, ...), the case's ``check`` verifies it. ``tests/test_extremes.py`` runs every
 case in CI; ``torchir bench`` lists the matrix and its outcomes in its report.
 
 Example:
@@ -32,6 +34,7 @@ class Case:
     run: Callable[[dict[str, Any]], Any]
     expect: Any = FINITE  # FINITE, or an exception class (or tuple of classes)
     match: str = ""  # a substring the exception message must contain
+    check: Callable[[Any, dict[str, Any]], str | None] | None = None  # finite result -> None, or what is wrong
 
 
 # ----------------------------------------------------------------------------- context
@@ -179,57 +182,167 @@ def _trainer_step(**model: Any) -> Callable[[dict], Any]:
     return run
 
 
+# ------------------------------------------------------------------------------ checks
+def _first(result: Any) -> torch.Tensor:
+    return result[0] if isinstance(result, (list, tuple)) else result
+
+
+def _all_zero(result: Any, ctx: dict) -> str | None:
+    tensors = result if isinstance(result, (list, tuple)) else [result]
+    bad = [i for i, t in enumerate(tensors) if torch.count_nonzero(t)]
+    return f"outputs {bad} should be exactly zero" if bad else None
+
+
+def _non_negative_with_positive_gradient(result: Any, ctx: dict, strict: bool = True) -> str | None:
+    """Radiance is >= 0, and no path throughput falls when an albedo grows: d(sum)/d(albedo)
+    >= 0, and > 0 (``strict``) when the image has enough paths to reach the wall."""
+    out, *grads = result if isinstance(result, (list, tuple)) else [result]
+    if float(out.min()) < 0:
+        return f"negative radiance {float(out.min())}"
+    if grads and not bool((grads[0] > 0 if strict else grads[0] >= 0).all()):
+        return f"albedo gradient {grads[0].tolist()} should be {'>' if strict else '>='} 0 in every channel"
+    return None
+
+
+def _scales_with_emission(baseline: Callable[[dict], torch.Tensor], factor: Callable[[dict], torch.Tensor]) -> Callable[[Any, dict], str | None]:
+    """Radiance is linear in the emitted radiance: the same paths at ``L`` give ``L / L0`` times
+    the image at the scene's ``L0`` (``factor`` broadcasts ``L / L0`` over the output)."""
+
+    def check(result: Any, ctx: dict) -> str | None:
+        out, expected = _first(result), baseline(ctx) * factor(ctx)
+        if not torch.allclose(out, expected, rtol=1e-4, atol=0):
+            return f"not linear in emission: max relative error {float(((out - expected).abs() / expected.abs().clamp_min(1e-30)).max()):.3g}"
+        return None
+
+    return check
+
+
+def _light_ratio(shape: tuple[int, ...]) -> Callable[[dict], torch.Tensor]:
+    return lambda ctx: (1e6 / ctx["cbox"].get(LIGHT)).view(shape)
+
+
+def _weights_and_pdf(weight: float, pixels: int = 64) -> Callable[[Any, dict], str | None]:
+    """A uniform pmf over ``pixels`` and weights ``1 / (N m p) = weight`` for every draw."""
+
+    def check(result: Any, ctx: dict) -> str | None:
+        w, pdf = result if isinstance(result, (list, tuple)) else (result, None)
+        if not torch.allclose(w, torch.full_like(w, weight), rtol=1e-6, atol=0):
+            return f"weights {w[:4].tolist()}... should all be {weight}"
+        if pdf is not None and not torch.allclose(pdf, torch.full_like(pdf, 1.0 / pixels), rtol=1e-9, atol=0):
+            return "pmf should be uniform"
+        return None
+
+    return check
+
+
+def _valid_pmf(alpha: float = 0.1, pixels: int = 64) -> Callable[[Any, dict], str | None]:
+    """Sums to 1, keeps ``p >= alpha / m``, and ``w = 1 / (N m p)`` for the drawn pixels."""
+
+    def check(result: Any, ctx: dict) -> str | None:
+        w, pdf = result
+        if abs(float(pdf.sum()) - 1) > 1e-12 or float(pdf.min()) < alpha / pixels * (1 - 1e-9):
+            return f"pmf sums to {float(pdf.sum())}, min {float(pdf.min())} < alpha / m"
+        if float(w.max()) > 1.0 / (w.numel() * alpha) * (1 + 1e-6):
+            return f"weight {float(w.max())} above 1 / (N alpha)"
+        return None
+
+    return check
+
+
+def _shape(*shape: int) -> Callable[[Any, dict], str | None]:
+    def check(result: Any, ctx: dict) -> str | None:
+        out = _first(result)
+        if tuple(out.shape) != shape:
+            return f"shape {tuple(out.shape)}, expected {shape}"
+        return _non_negative_with_positive_gradient(result, ctx, strict=False)  # 1-2 paths may miss the wall
+
+    return check
+
+
+def _loi_gradient(where: Callable[[torch.Tensor], torch.Tensor], sign: str) -> Callable[[Any, dict], str | None]:
+    """LOI's gradient on the pixels ``where(grad)`` selects: ``"zero"`` (saturated: the point
+    CDFs are flat that far outside the range; near the borders the zero padding, blurred in,
+    brings values back into range, hence the interior crop) or ``"negative"`` (raising the image lowers the loss)."""
+
+    def check(result: Any, ctx: dict) -> str | None:
+        loss, grad = result
+        g = where(grad)
+        if float(loss) <= 0:
+            return f"loss {float(loss)} should be > 0 for different images"
+        if sign == "zero" and torch.count_nonzero(g):
+            return f"gradient should be exactly zero there, max |g| = {float(g.abs().max())}"
+        if sign == "negative" and not bool((g < 0).all()):
+            return "gradient should be < 0 everywhere (the target is brighter everywhere)"
+        return None
+
+    return check
+
+
+def _restir_light_off(result: Any, ctx: dict) -> str | None:
+    *images, grad, stats = result
+    if any(torch.count_nonzero(t) for t in (*images, grad)) or float(stats[0]) != 0:
+        return "a switched-off light must give zero images, zero gradient and max W = 0"
+    return None
+
+
+def _restir_b1(result: Any, ctx: dict) -> str | None:
+    *images, grad, stats = result
+    if float(stats[1]) != 1.0:
+        return f"B.1 has M = 1 everywhere, got mean M {float(stats[1])}"
+    return _non_negative_with_positive_gradient([images[-1], grad], ctx)
+
+
 CASES: list[Case] = [
     # render -------------------------------------------------------------------------
     Case("render", "NaN parameter", _render("cbox", lambda: {RED: torch.tensor([math.nan, 0.5, 0.5])}), ValueError, "NaN"),
     Case("render", "Inf parameter", _render("cbox", lambda: {RED: torch.tensor([math.inf, 0.5, 0.5])}), ValueError, "Inf"),
     Case("render", "unknown parameter name", _render("cbox", lambda: {"red.reflectance.valu": torch.zeros(3)}), KeyError, "red.reflectance.value"),
     Case("render", "wrong shape (4 values for a colour)", _render("cbox", lambda: {RED: torch.zeros(4)}), ValueError, "shape"),
-    Case("render", "zero albedo (+ gradient)", _render("cbox", _grad([0.0, 0.0, 0.0]))),
-    Case("render", "all-zero radiance (light off)", _render("cbox", lambda: {LIGHT: torch.zeros(3)})),
-    Case("render", "1e6 radiance", _render("cbox", lambda: {LIGHT: torch.full((3,), 1e6)})),
-    Case("render", "1 spp", _render("cbox", spp=1)),
-    Case("render", "4096 spp (1x1 image)", _render("one", spp=4096)),
-    Case("render", "1x1 image (+ gradient)", _render("one", _grad([0.5, 0.5, 0.5]))),
-    Case("render", "non-square 4x12 image (+ gradient)", _render("wide", _grad([0.5, 0.5, 0.5]))),
+    Case("render", "zero albedo (+ gradient)", _render("cbox", _grad([0.0, 0.0, 0.0])), check=_non_negative_with_positive_gradient),
+    Case("render", "all-zero radiance (light off)", _render("cbox", lambda: {LIGHT: torch.zeros(3)}), check=_all_zero),
+    Case("render", "1e6 radiance", _render("cbox", lambda: {LIGHT: torch.full((3,), 1e6)}), check=_scales_with_emission(lambda c: _render("cbox")(c), _light_ratio((3, 1, 1)))),
+    Case("render", "1 spp", _render("cbox", spp=1), check=_shape(3, 8, 8)),
+    Case("render", "4096 spp (1x1 image)", _render("one", spp=4096), check=_shape(3, 1, 1)),
+    Case("render", "1x1 image (+ gradient)", _render("one", _grad([0.5, 0.5, 0.5])), check=_shape(3, 1, 1)),
+    Case("render", "non-square 4x12 image (+ gradient)", _render("wide", _grad([0.5, 0.5, 0.5])), check=_shape(3, 4, 12)),
     Case("render", "spp 0", _render("cbox", spp=0), ValueError, "spp"),
     Case("render", "seed_grad == seed", _render("cbox", seed=3, seed_grad=3), ValueError, "seed_grad"),
     # render_pixels --------------------------------------------------------------------
-    Case("render_pixels", "one pixel (+ gradient)", _pixels("cbox", lambda c: torch.tensor([5]), _grad([0.5, 0.5, 0.5]))),
-    Case("render_pixels", "full budget, every pixel twice", _pixels("cbox", lambda c: torch.arange(64).repeat(2))),
+    Case("render_pixels", "one pixel (+ gradient)", _pixels("cbox", lambda c: torch.tensor([5]), _grad([0.5, 0.5, 0.5])), check=_shape(1, 3)),
+    Case("render_pixels", "full budget, every pixel twice", _pixels("cbox", lambda c: torch.arange(64).repeat(2)), check=_shape(128, 3)),
     Case("render_pixels", "index out of range", _pixels("cbox", lambda c: torch.tensor([64])), IndexError, "out of range"),
     Case("render_pixels", "empty index", _pixels("cbox", lambda c: torch.zeros(0, dtype=torch.int64)), ValueError, "non-empty"),
     Case("render_pixels", "float index", _pixels("cbox", lambda c: torch.tensor([1.0])), TypeError, "integer"),
-    Case("render_pixels", "1e6 radiance", _pixels("cbox", lambda c: torch.arange(8), lambda: {LIGHT: torch.full((3,), 1e6)})),
-    Case("render_pixels", "non-square image", _pixels("wide", lambda c: torch.arange(48))),
+    Case("render_pixels", "1e6 radiance", _pixels("cbox", lambda c: torch.arange(8), lambda: {LIGHT: torch.full((3,), 1e6)}), check=_scales_with_emission(lambda c: _pixels("cbox", lambda _: torch.arange(8))(c), _light_ratio((1, 3)))),
+    Case("render_pixels", "non-square image", _pixels("wide", lambda c: torch.arange(48)), check=_shape(48, 3)),
     # pixel samplers --------------------------------------------------------------------
-    Case("AdaptivePixelSampler", "budget 1", _sampler("adaptive", budget=1)),
-    Case("AdaptivePixelSampler", "budget > pixels (with replacement)", _sampler("adaptive", budget=1000)),
+    Case("AdaptivePixelSampler", "budget 1", _sampler("adaptive", budget=1), check=_weights_and_pdf(1.0)),
+    Case("AdaptivePixelSampler", "budget > pixels (with replacement)", _sampler("adaptive", budget=1000), check=_weights_and_pdf(1 / 1000)),
     Case("AdaptivePixelSampler", "budget 0", _sampler("adaptive", budget=0), ValueError, "budget"),
     Case("AdaptivePixelSampler", "negative budget", _sampler("adaptive", budget=-4), ValueError, "budget"),
-    Case("AdaptivePixelSampler", "all-zero p1 (uniform fallback)", _sampler("adaptive", lambda: (torch.zeros(1, 8, 8), torch.rand(1, 8, 8)))),
-    Case("AdaptivePixelSampler", "all-zero p2 (uniform fallback)", _sampler("adaptive", lambda: (torch.rand(1, 8, 8), torch.zeros(1, 8, 8)))),
-    Case("AdaptivePixelSampler", "one hot pixel", _sampler("adaptive", lambda: (torch.nn.functional.one_hot(torch.tensor(9), 64).reshape(1, 8, 8).float(), torch.ones(1, 8, 8)))),
-    Case("AdaptivePixelSampler", "1e30 in the maps", _sampler("adaptive", lambda: (torch.full((1, 8, 8), 1e30), torch.ones(1, 8, 8)))),
-    Case("LossPixelSampler", "NaN in p1 (warning, uniform)", _sampler("loss", _nan_map)),
-    Case("UniformPixelSampler", "2^25 pixels", lambda ctx: __import__("torchir.samplers", fromlist=["x"]).UniformPixelSampler(resolution=(4096, 8192), budget=8).sample().weight),
+    Case("AdaptivePixelSampler", "all-zero p1 (uniform fallback)", _sampler("adaptive", lambda: (torch.zeros(1, 8, 8), torch.rand(1, 8, 8))), check=_weights_and_pdf(1 / 16)),
+    Case("AdaptivePixelSampler", "all-zero p2 (uniform fallback)", _sampler("adaptive", lambda: (torch.rand(1, 8, 8), torch.zeros(1, 8, 8))), check=_weights_and_pdf(1 / 16)),
+    Case("AdaptivePixelSampler", "one hot pixel", _sampler("adaptive", lambda: (torch.nn.functional.one_hot(torch.tensor(9), 64).reshape(1, 8, 8).float(), torch.ones(1, 8, 8))), check=_valid_pmf()),
+    Case("AdaptivePixelSampler", "1e30 in the maps", _sampler("adaptive", lambda: (torch.full((1, 8, 8), 1e30), torch.ones(1, 8, 8))), check=_weights_and_pdf(1 / 16)),
+    Case("LossPixelSampler", "NaN in p1 (warning, uniform)", _sampler("loss", _nan_map), check=_weights_and_pdf(1 / 16)),
+    Case("UniformPixelSampler", "2^25 pixels", lambda ctx: __import__("torchir.samplers", fromlist=["x"]).UniformPixelSampler(resolution=(4096, 8192), budget=8).sample().weight, check=_weights_and_pdf(1 / 8)),
     # modules (pure torch) ----------------------------------------------------------------
     Case("TargetAwareDenoiser", "1e6 firefly in noisy", _module(lambda: _denoiser(), _images(((1, 3, 16, 16), _firefly), ((1, 3, 16, 16), None)))),
     Case("TargetAwareDenoiser", "black target", _module(lambda: _denoiser(), _images(((1, 3, 16, 16), None), ((1, 3, 16, 16), torch.zeros_like)))),
     Case("TargetAwareDenoiser", "1x1 image", _module(lambda: _denoiser(), _images(((1, 3, 1, 1), None), ((1, 3, 1, 1), None)))),
     Case("TargetAwareDenoiser", "non-square 5x17 image", _module(lambda: _denoiser(), _images(((2, 3, 5, 17), None), ((2, 3, 5, 17), None)))),
     Case("TargetAwareDenoiser", "NaN in noisy", _module(lambda: _denoiser(), _images(((1, 3, 8, 8), _nan), ((1, 3, 8, 8), None))), ValueError, "NaN"),
-    Case("LOILoss", "constant images", _module(lambda: _loi(), _images(((1, 3, 16, 16), lambda x: torch.full_like(x, 0.3)), ((1, 3, 16, 16), lambda x: torch.full_like(x, 0.7))))),
-    Case("LOILoss", "values far outside the range (bins with no mass)", _module(lambda: _loi(), _images(((1, 3, 16, 16), lambda x: x + 50), ((1, 3, 16, 16), lambda x: -x)))),
-    Case("LOILoss", "1e6 firefly", _module(lambda: _loi(), _images(((1, 3, 16, 16), _firefly), ((1, 3, 16, 16), None)))),
+    Case("LOILoss", "constant images", _module(lambda: _loi(), _images(((1, 3, 16, 16), lambda x: torch.full_like(x, 0.3)), ((1, 3, 16, 16), lambda x: torch.full_like(x, 0.7)))), check=_loi_gradient(lambda g: g, "negative")),
+    Case("LOILoss", "values far outside the range (bins with no mass)", _module(lambda: _loi(), _images(((1, 3, 16, 16), lambda x: x + 50), ((1, 3, 16, 16), lambda x: -x))), check=_loi_gradient(lambda g: g[..., 6:-6, 6:-6], "zero")),
+    Case("LOILoss", "1e6 firefly", _module(lambda: _loi(), _images(((1, 3, 16, 16), _firefly), ((1, 3, 16, 16), None))), check=_loi_gradient(lambda g: g[..., 3, 3], "zero")),
     Case("LOILoss", "1x1 image", _module(lambda: _loi(), _images(((1, 3, 1, 1), None), ((1, 3, 1, 1), None)))),
     Case("LOILoss", "NaN in target", _module(lambda: _loi(), _images(((1, 3, 8, 8), None), ((1, 3, 8, 8), _nan))), ValueError, "target"),
     Case("LOILoss", "Mitsuba (H,W,C) layout", _module(lambda: _loi(), _images(((8, 8, 3), None), ((8, 8, 3), None))), ValueError, "(H, W, C)"),
     # ReSTIR --------------------------------------------------------------------------------
-    Case("ReSTIRSampler", "light switched off (empty reservoirs)", _restir(light=0.0)),
+    Case("ReSTIRSampler", "light switched off (empty reservoirs)", _restir(light=0.0), check=_restir_light_off),
     Case("ReSTIRSampler", "1e6 radiance", _restir(light=1e6)),
     Case("ReSTIRSampler", "zero albedo", _restir(albedo=0.0)),
-    Case("ReSTIRSampler", "one candidate, no reuse (B.1)", _restir(preset="b1")),
+    Case("ReSTIRSampler", "one candidate, no reuse (B.1)", _restir(preset="b1"), check=_restir_b1),
     Case("ReSTIRSampler", "light-position gradient (unsupported)", _trainer_step(scene="glossy_highlight", parameters={"light.azimuth": {"init": 0.5}}, sampler={"type": "restir"}), ValueError, "light parameter"),
     Case("ReSTIRSampler", "indirect light requested", lambda ctx: _restir_on_depth4(ctx), ValueError, "direct"),
     # trainer step ------------------------------------------------------------------------
@@ -275,7 +388,12 @@ def run_case(case: Case, ctx: dict[str, Any]) -> tuple[bool, str]:
         ok = case.expect is not FINITE and isinstance(error, case.expect) and case.match in str(error)
         return ok, outcome
     finite = _finite(result)
-    return case.expect is FINITE and finite, FINITE if finite else "non-finite output"
+    if not finite:
+        return False, "non-finite output"
+    if case.expect is not FINITE:
+        return False, FINITE
+    wrong = case.check(result, ctx) if case.check is not None else None
+    return (False, f"finite but wrong: {wrong}") if wrong else (True, FINITE)
 
 
 def run(cases: list[Case] | None = None) -> list[tuple[str, str, str, str, bool]]:
