@@ -241,9 +241,10 @@ class Scene:
         scene_dict = entry.build(resolution=resolution, **options)
         if override_integrator is not None:
             scene_dict["integrator"] = _integrator_spec(override_integrator)
-        derived = scene_dict.pop("torchir_derived", ())
+        derived = scene_dict.pop("torchir_derived", ())  # [(target, to_target, {name: value})]
         scene = cls(mi.load_dict(scene_dict, optimize=False), name=name, description=entry.description)
-        scene.derived = {d.name: d for d in derived}
+        for target, to_target, inputs in derived:
+            scene.derive(target, to_target, inputs)
         return scene
 
     @classmethod

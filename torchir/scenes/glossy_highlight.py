@@ -41,10 +41,9 @@ def light_position(azimuth: torch.Tensor) -> torch.Tensor:
 def build(resolution: int | tuple[int, int] | None = None, azimuth: float = 0.0, roughness: float = 0.08, intensity: float = 60.0) -> dict[str, Any]:
     """Mitsuba dict at ``resolution`` (default 32x32), light at ``azimuth`` radians.
 
-    The dict carries the derived parameter under ``"torchir_derived"`` (taken out by
-    :meth:`torchir.Scene.builtin` before Mitsuba sees the dict)."""
-    from ..scene import DerivedParameter
-
+    The dict carries the derived parameter under ``"torchir_derived"`` as ``(target,
+    to_target, {name: load-time value})``, declared with :meth:`torchir.Scene.derive` by
+    :meth:`torchir.Scene.builtin` (which takes it out before Mitsuba sees the dict)."""
     h, w = resolution_hw(resolution, 32)
     position = light_position(torch.tensor([float(azimuth)], dtype=torch.float64)).tolist()
     return {
@@ -59,6 +58,6 @@ def build(resolution: int | tuple[int, int] | None = None, azimuth: float = 0.0,
         },
         "light": {"type": "point", "position": position, "intensity": {"type": "rgb", "value": intensity}},
         "torchir_derived": [
-            DerivedParameter("light.azimuth", "light.position", (1,), light_position, (float(azimuth),)),
+            ("light.position", light_position, {"light.azimuth": [float(azimuth)]}),
         ],
     }
