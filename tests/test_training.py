@@ -143,10 +143,10 @@ def test_targets_from_files(tmp_path):
     logs no parameter error; the test knows the albedos that made the file and checks them."""
     from torchir import Scene
     from torchir.functions import render
-    from torchir.training.callbacks import _write_exr
+    from torchir.imageio import write_image
 
     scene = Scene.builtin("cbox", resolution=16)
-    _write_exr(tmp_path / "target.exr", render(scene, {}, spp=64, seed=5))
+    write_image(tmp_path / "target.exr", render(scene, {}, spp=64, seed=5))
     assert _fit(tmp_path, "--trainer.max_steps", "30", "--data.targets", f"[{tmp_path / 'target.exr'}]") == 0
     rows = list(csv.DictReader(open(_run_dir(tmp_path) / "metrics.csv")))
     assert not any(r.get("param_error") for r in rows) and any(r.get("loss") for r in rows)

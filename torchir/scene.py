@@ -219,6 +219,7 @@ class Scene:
         self._owner: object | None = None  # the render op whose grad-enabled values are bound
         self._warned: set[str] = set()
         self.derived: dict[str, DerivedParameter] = {}  # reparameterisations declared by the scene
+        self.is_builtin = False  # made by Scene.builtin (not from a user's file or dict)
 
     # ----------------------------------------------------------------------------- loading
     @classmethod
@@ -243,6 +244,7 @@ class Scene:
             scene_dict["integrator"] = _integrator_spec(override_integrator)
         derived = scene_dict.pop("torchir_derived", ())  # [(target, to_target, {name: value})]
         scene = cls(mi.load_dict(scene_dict, optimize=False), name=name, description=entry.description)
+        scene.is_builtin = True
         for target, to_target, inputs in derived:
             scene.derive(target, to_target, inputs)
         return scene

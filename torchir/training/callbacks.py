@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Any
 
 import lightning.pytorch as pl
-import numpy as np
 import torch
 
 from lightning.pytorch.callbacks import TQDMProgressBar
@@ -44,10 +43,6 @@ class NonFiniteLossGuard(pl.Callback):
         trainer.save_checkpoint(path)
         pl_module.nonfinite += f"; the last good state is in {path}"
         trainer.should_stop = True
-
-
-def _write_exr(path: Path, image: torch.Tensor) -> None:
-    write_image(path, image)
 
 
 def _interrupted(exception: BaseException) -> bool:
@@ -166,7 +161,7 @@ class ResultWriter(pl.Callback):
     """At the end of a run and on Ctrl-C: ``checkpoints/last.ckpt`` of the last step and
     ``result.yaml`` (recovered values in their own units, see :mod:`torchir.training.results`)."""
 
-    def _finish(self, trainer, pl_module) -> None:
+    def _finish(self, trainer, pl_module, interrupted: bool = False) -> None:
         from lightning.pytorch.callbacks import ModelCheckpoint
 
         from .results import write_results
@@ -174,6 +169,8 @@ class ResultWriter(pl.Callback):
         checkpoint = trainer.checkpoint_callback
         if not trainer.loggers and checkpoint is None:
             return  # a run without outputs (logger=False, no checkpointing): write nothing, as Lightning does
+        if interrupted:
+            print(f"\n[torchir] interrupted after step {trainer.global_step}: saving the state")
         if isinstance(checkpoint, ModelCheckpoint) and checkpoint.dirpath and trainer.global_step > 0:
             # ModelCheckpoint's own "last" file (it may carry a version suffix), registered with it so
             # that it never writes a second one (last-v1.ckpt) beside ours
@@ -191,8 +188,7 @@ class ResultWriter(pl.Callback):
 
     def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
         if _interrupted(exception):
-            print(f"\n[torchir] interrupted after step {trainer.global_step}: saving the state")
-            self._finish(trainer, pl_module)
+            self._finish(trainer, pl_module, interrupted=True)
 
 
 class StepProgressBar(TQDMProgressBar):

@@ -133,7 +133,7 @@ class ViewDataModule(pl.LightningDataModule):
         if tuple(image.shape[1:]) != (h, w):
             fix = (
                 "set model.resolution"
-                if scene.name in _builtin_names()
+                if scene.is_builtin
                 else "set the film's width/height in the scene file (or pass them as model.scene_options if the file "
                 "declares them with <default>)"
             )
@@ -153,9 +153,3 @@ class ViewDataModule(pl.LightningDataModule):
         if per_step % world:
             raise ValueError(f"data.views_per_step ({per_step}) must be divisible by the number of processes ({world})")
         return DataLoader(ViewDataset(self.views, self.targets), batch_size=per_step // world, shuffle=False, num_workers=0)
-
-
-def _builtin_names() -> set[str]:
-    from .. import scenes
-
-    return set(scenes.available())

@@ -102,7 +102,7 @@ class InverseRenderingModule(pl.LightningModule):
         for label, spec in (derived or {}).items():
             declare_derived(self.scene, label, spec)
         if parameters is None:
-            if self.scene.name not in _builtin_names():
+            if not self.scene.is_builtin:
                 raise ValueError("model.parameters is required for scenes loaded from files")
             from .. import scenes
 
@@ -360,12 +360,6 @@ class InverseRenderingModule(pl.LightningModule):
     def results_dir(self) -> Path:
         """Where this run writes its outputs (the logger's version folder)."""
         return self._results_dir
-
-
-def _builtin_names() -> set[str]:
-    from .. import scenes
-
-    return set(scenes.available())
 
 
 def _as_config(key: str, config: Any) -> ParameterConfig:
