@@ -177,7 +177,7 @@ class ResultWriter(pl.Callback):
             name = f"{ModelCheckpoint.CHECKPOINT_NAME_LAST}{ModelCheckpoint.FILE_EXTENSION}"
             path = checkpoint.last_model_path or str(Path(checkpoint.dirpath) / name)
             checkpoint.last_model_path = path
-            trainer.save_checkpoint(path)
+            trainer.save_checkpoint(path, weights_only=False)  # the full state, resumable
         if trainer.is_global_zero:
             path = write_results(pl_module, pl_module.results_dir, trainer.global_step, images=False)
             print(f"[torchir] recovered values: {path}")
@@ -198,11 +198,15 @@ class StepProgressBar(TQDMProgressBar):
     SHOWN = ("loss", "param_error")
 
     def on_train_start(self, trainer, pl_module) -> None:
-        self.train_progress_bar = self.init_train_tqdm()
-        self.train_progress_bar.reset(total=trainer.max_steps if trainer.max_steps > 0 else None)
-        self.train_progress_bar.n = trainer.global_step
-        self.train_progress_bar.set_description("step")
-        self.train_progress_bar.bar_format = "{desc} {n_fmt}/{total_fmt} |{bar}| [{elapsed}<{remaining}{postfix}]"
+        import sys
+
+        from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
+
+        self.train_progress_bar = Tqdm(
+            desc="step", total=trainer.max_steps if trainer.max_steps > 0 else None, initial=trainer.global_step,
+            position=2 * self.process_position, disable=self.is_disabled, leave=True, dynamic_ncols=True,
+            file=sys.stdout, smoothing=0, bar_format="{desc} {n_fmt}/{total_fmt} |{bar}| [{elapsed}<{remaining}{postfix}]",
+        )
 
     def on_train_epoch_start(self, trainer, *_: Any) -> None:
         pass  # no per-epoch reset
