@@ -120,20 +120,28 @@ def test_paper_literal_tail_zero():
     assert edge.item() < 0.045  # under-counts near the ends of the range (spec 6.1.13)
 
 
-def test_pad_border_crop_is_exact():
+@pytest.mark.parametrize(
+    ("h", "w", "alphas", "value_range"),
+    [(24, 20, (0, 1, 2, 6), (0.0, 1.0)), (20, 24, (0, 1), (-0.5, 1.5))],
+)
+def test_pad_border_crop_is_exact(h, w, alphas, value_range):
     """border="pad" evaluates small-alpha terms on a cropped canvas: it must equal the plain
-    renormalised loss on explicitly padded images (rescaled to the unpadded pixel count)."""
-    h, w, m = 24, 20, 12  # pad_frac 0.5 * max(H, W)
+    renormalised loss on explicitly padded images (padded with ``lo``, rescaled to the unpadded
+    pixel count), tall or wide, whether some term needs the whole canvas or none does."""
+    m = 12  # pad_frac 0.5 * max(H, W)
     x = _rand(1, 2, h, w, lo=0.05, hi=0.95, dtype=D64).requires_grad_()
     y = _rand(1, 2, h, w, seed=1, lo=0.05, hi=0.95, dtype=D64)
-    opts = dict(alphas=(0, 1, 2, 6), sigmas=(0, 1), beta=0.25)
+    opts = dict(alphas=alphas, sigmas=(0, 1), beta=0.25, value_range=value_range)
     got = loi_loss(x, y, border="pad", pad_frac=0.5, **opts)
-    pad = lambda t: torch.nn.functional.pad(t, (m, m, m, m))  # noqa: E731
+    pad = lambda t: torch.nn.functional.pad(t, (m, m, m, m), value=value_range[0])  # noqa: E731
     ref = loi_loss(pad(x), pad(y), border="renormalize", **opts) * ((h + 2 * m) * (w + 2 * m) / (h * w))
     assert got.item() == pytest.approx(ref.item(), rel=1e-12)
     (g_got,) = torch.autograd.grad(got, x)
     (g_ref,) = torch.autograd.grad(ref, x)
     assert torch.allclose(g_got, g_ref, rtol=1e-10, atol=1e-14)
+    # terms() crops every term, weighted or not, on its own canvas
+    terms = LOILoss(border="pad", pad_frac=0.5, weights=[[1.0] * (len(alphas) - 1) + [0.0]] * 2, **opts).terms(x, y)
+    assert sum(terms.values()).item() == pytest.approx(got.item(), rel=1e-12)
 
 
 def test_cell_fraction_is_exact_on_constants_and_close_on_a_disk():
@@ -308,6 +316,11 @@ def test_float32_float64_agree_and_half_is_upcast():
     assert v64.dtype == D64
     assert loi_loss(x.float(), y.float()).item() == pytest.approx(v64.item(), rel=1e-4)
     assert loi_loss(x.half(), y.half()).dtype == torch.float32
+    # mixed: both are promoted to float64 before anything else
+    mixed = loi_loss(x.float(), y)
+    assert mixed.dtype == D64 and mixed.item() == pytest.approx(loi_loss(x.float().double(), y).item(), rel=1e-12)
+    mixed = loi_loss(x, y.float())
+    assert mixed.dtype == D64 and mixed.item() == pytest.approx(loi_loss(x, y.float().double()).item(), rel=1e-12)
 
 
 def test_mask_weights_pixels():
@@ -410,11 +423,63 @@ def test_non_finite_input_names_the_tensor(bad, which):
         (dict(weights=[[1, 2]]), ValueError, "weights must have shape"),
         (dict(channels="rgb"), ValueError, "channels must be one of"),
         (dict(cell_fraction=1.5), ValueError, "cell_fraction must be in"),
+        (dict(alphas=None), TypeError, r"^alphas must be a sequence of numbers, got None$"),
+        (dict(sigmas=(1, -2)), ValueError, r"^sigmas must be finite and >= 0, got \(1.0, -2.0\)$"),
+        (dict(weights=[[1, -2]], alphas=(1, 2), sigmas=(1,)), ValueError, "^weights must be finite and >= 0$"),
+        (dict(weights=[[1, float("nan")]], alphas=(1, 2), sigmas=(1,)), ValueError, "^weights must be finite and >= 0$"),
+        (dict(value_range=(0.5, 0.5)), ValueError, r"^value_range must be finite \(lo, hi\) with lo < hi, got \(0.5, 0.5\)$"),
+        (dict(tail=True), ValueError, "^tail must be an int >= 0, got True$"),
+        (dict(tail=2.0), ValueError, "^tail must be an int >= 0, got 2.0$"),
+        (dict(transform=42), TypeError, "^transform must be a name or a callable, got int$"),
+        (dict(pad_frac=4.5), ValueError, r"^pad_frac must be in \[0, 4\], got 4.5$"),
+        (dict(pad_frac=-0.1), ValueError, r"^pad_frac must be in \[0, 4\], got -0.1$"),
+        (dict(truncate=0), ValueError, "^truncate must be > 0, got 0$"),
+        (dict(cache_target=-1), ValueError, "^cache_target must be a bool or an int >= 0, got -1$"),
+        (dict(cache_target="2"), ValueError, "^cache_target must be a bool or an int >= 0, got '2'$"),
     ],
 )
 def test_bad_options(kwargs, error, match):
     with pytest.raises(error, match=match):
         LOILoss(**kwargs)
+
+
+def test_option_boundaries_are_accepted():
+    """The closed ends of each range are valid; scales below MIN_SCALE px are 0; the weights
+    keep their float64 values; beta = 1/128 is not yet "small"."""
+    from torchir.modules._blur import MIN_SCALE
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        m = LOILoss(alphas=(MIN_SCALE / 10, MIN_SCALE, 1), sigmas=(0,), pad_frac=4, truncate=0.5, beta=1 / 128, weights=[[0.1, 0.2, 0.3]])
+    assert m.alphas == (0.0, MIN_SCALE, 1.0) and m.pad_frac == 4.0 and m.truncate == 0.5
+    assert m.weights == ((0.1, 0.2, 0.3),)
+    x, y = _rand(1, 1, 6, 6), _rand(1, 1, 6, 6, seed=1)
+    assert loi_loss(x, y, pad_frac=0).item() == pytest.approx(loi_loss(x, y, border="renormalize").item(), rel=1e-6)
+    assert LOILoss(cache_target=0).cache_size == 0 and LOILoss(cache_target=True).cache_size == 1
+
+
+@pytest.mark.parametrize(("beta", "value_range", "tail"), [(1.0, (0.0, 1.0), 0), (0.75, (0.0, 1.0), 2), (0.1, (0.5, 1.5), 1), (0.125, (0.5, 1.0), 3)])
+def test_bin_edges_span_the_range(beta, value_range, tail):
+    """E3: ``K = N + 2T + 1`` edges ``lo + j beta``, ``N = max(1, round((hi - lo) / beta))``:
+    a point mass at ``v`` has local CDF ``Phi((e_j - v) / beta)`` at each edge."""
+    lo, hi = value_range
+    n = max(1, round((hi - lo) / beta))
+    edges = lo + torch.arange(-tail, n + tail + 1, dtype=D64) * beta
+    v = torch.full((1, 1, 3, 3), 0.6, dtype=D64)
+    c = LOILoss(beta=beta, value_range=value_range, tail=tail).cdfs(v, 0, 0)
+    assert c.shape == (1, 1, n + 2 * tail + 1, 3, 3)
+    torch.testing.assert_close(c[0, 0, :, 1, 1], torch.special.ndtr((edges - 0.6) / beta), rtol=1e-14, atol=1e-15)
+
+
+def test_small_beta_warns_from_both_twins():
+    for make in (lambda: LOILoss(beta=0.001), lambda: loi_loss(torch.ones(1, 1, 2, 2), torch.ones(1, 1, 2, 2), beta=0.001)):
+        with pytest.warns(UserWarning, match=r"^beta=0.001 < 1/128: many bins"):
+            make()
+
+
+def test_unknown_attribute_is_the_modules_error():
+    with pytest.raises(AttributeError, match="^'LOILoss' object has no attribute 'nope'$"):
+        LOILoss().nope
 
 
 def test_bad_images():
@@ -429,8 +494,15 @@ def test_bad_images():
         loi_loss(torch.rand(8, 8), torch.rand(8, 8))
     with pytest.raises(TypeError, match="floating-point"):
         loi_loss(torch.ones(1, 3, 8, 8, dtype=torch.uint8), torch.ones(1, 3, 8, 8, dtype=torch.uint8))
-    with pytest.raises(TypeError, match="torch.Tensor"):
+    with pytest.raises(TypeError, match="^rendered must be a torch.Tensor, got ndarray$"):
         loi_loss(x.numpy(), x)
+    with pytest.raises(ValueError, match=r"^rendered is empty \(shape \(1, 3, 0, 4\)\)$"):
+        loi_loss(torch.rand(1, 3, 0, 4), torch.rand(1, 3, 0, 4))
+    with pytest.raises(ValueError, match=r"^rendered has shape \(5, 8, 3\), which looks like Mitsuba's"):
+        loi_loss(torch.rand(5, 8, 3), torch.rand(5, 8, 3))
+    # a 4-channel image 3 pixels wide and a single pixel are images, not layouts or empties
+    assert loi_loss(torch.rand(4, 8, 3), torch.rand(4, 8, 3), reduction="none").shape == (1,)
+    assert loi_loss(torch.zeros(1, 1, 1), torch.ones(1, 1, 1), alphas=(0,), sigmas=(0,)).item() > 0
     with pytest.warns(UserWarning, match="beta=0.001"):
         LOILoss(beta=0.001)
 
@@ -439,7 +511,7 @@ def test_luminance_channels():
     x, y = _rand(1, 3, 8, 8), _rand(1, 3, 8, 8, seed=1)
     lum = lambda t: (t * torch.tensor([0.2126, 0.7152, 0.0722]).view(1, 3, 1, 1)).sum(1, keepdim=True)  # noqa: E731, Rec. 709
     assert loi_loss(x, y, channels="luminance").item() == pytest.approx(loi_loss(lum(x), lum(y)).item(), rel=1e-5)
-    with pytest.raises(ValueError, match="needs 3 channels"):
+    with pytest.raises(ValueError, match="needs 3 channels, got 2$"):
         loi_loss(x[:, :2], y[:, :2], channels="luminance")
 
 
@@ -481,3 +553,238 @@ def test_mitsuba_smoke_loi_backward_through_render(cbox, red):
     assert red.grad[0] > 0 and red.grad[1] < 0 and red.grad[2] < 0, red.grad
     with pytest.raises(ValueError, match=r"\(H, W, C\)"):
         LOILoss()(img.permute(1, 2, 0), target.permute(1, 2, 0))
+
+
+# ------------------------------------------------------------------- options and inspection
+def _saved_per_sigma(loss: torch.Tensor) -> list[int]:
+    """How many tensors each fused sigma term keeps for backward."""
+    seen, stack, out = set(), [loss.grad_fn], []
+    while stack:
+        node = stack.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        if type(node).__name__ == "_SigmaTermBackward":
+            out.append(len(node.saved_tensors))
+        stack += [f for f, _ in node.next_functions]
+    return out
+
+
+def test_function_and_module_defaults_agree():
+    """The twins share their defaults (the module is the function plus caching): equal values
+    with and without a mask, the documented ``pad_frac = 0.25`` margin, and the fast path
+    (``low_memory=False`` keeps u, D and the blurred differences, 4 + 2 + |alphas| tensors)."""
+    x, y = _rand(1, 2, 12, 10, lo=-0.2, hi=1.2, dtype=D64).requires_grad_(), _rand(1, 2, 12, 10, seed=1, dtype=D64)
+    mask = _rand(1, 1, 12, 10, seed=2, dtype=D64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        f, m = loi_loss(x, y), LOILoss()(x, y)
+        assert f.item() == pytest.approx(m.item(), rel=1e-12)
+        assert f.item() == pytest.approx(loi_loss(x, y, pad_frac=0.25).item(), rel=1e-12)
+        assert f.item() != pytest.approx(loi_loss(x, y, pad_frac=0.5).item(), rel=1e-6)
+        masked = loi_loss(x, y, mask=mask)
+        assert LOILoss()(x, y, mask).item() == pytest.approx(masked.item(), rel=1e-12)
+        assert masked.item() != pytest.approx(f.item(), rel=1e-6)
+        assert _saved_per_sigma(f) == _saved_per_sigma(m) == [4 + 2 + 4] * 2
+        assert _saved_per_sigma(loi_loss(x, y, low_memory=True)) == [4] * 2
+    assert LOILoss().cfg == LOILoss.preset("pathtracing").cfg  # the default scales are the preset's
+
+
+def test_set_scales_equals_a_fresh_module():
+    """``set_scales`` gives the loss of a module built with those scales (others kept)."""
+    x, y = _rand(1, 1, 10, 10, dtype=D64), _rand(1, 1, 10, 10, seed=1, dtype=D64)
+    m = LOILoss(alphas=(1, 3), sigmas=(0,), border="renormalize")
+    m(x, y)
+    m.set_scales(sigmas=(0, 2), weights=[[1.0, 0.5], [2.0, 0.0]])
+    assert m.alphas == (1.0, 3.0) and m.sigmas == (0.0, 2.0) and len(m._cache) == 0
+    fresh = LOILoss(alphas=(1, 3), sigmas=(0, 2), weights=[[1.0, 0.5], [2.0, 0.0]], border="renormalize")
+    assert m(x, y).item() == pytest.approx(fresh(x, y).item(), rel=1e-12)
+    m.set_scales(alphas=(2,))  # weights reset to 1
+    assert m.cfg == LOILoss(alphas=(2,), sigmas=(0, 2), border="renormalize").cfg
+    with pytest.raises(ValueError, match="^alphas must be finite and >= 0"):
+        m.set_scales(alphas=(-1,))
+    with pytest.raises(ValueError, match=r"^sigmas must be finite and >= 0"):
+        m.set_scales(sigmas=(-1,))
+    with pytest.raises(ValueError, match=r"weights must have shape \(len\(sigmas\), len\(alphas\)\) = \(2, 1\)"):
+        m.set_scales(weights=[[1.0, 1.0]])
+
+
+@pytest.mark.parametrize("border", ["pad", "renormalize"])
+def test_cdfs_are_blurred_point_cdfs(border):
+    """E6: ``A_alpha * Phi((e_j - J_sigma) / beta)`` with the loss's transform, margin (the
+    image padded with ``lo`` then cropped) and (relative) scales."""
+    img = _rand(2, 1, 12, 9, hi=3.0, dtype=D64)
+    opts = dict(beta=0.25, tail=1, border=border, pad_frac=0.5, transform="reinhard", value_range=(0.1, 1.1), truncate=1.0)
+    m = LOILoss(**opts)
+    pad = 6 if border == "pad" else 0
+    j = torch.nn.functional.pad(img / (1 + img), (pad,) * 4, value=0.1)
+    edges = 0.1 + torch.arange(-1, 6, dtype=D64) * 0.25
+    z = torch.special.ndtr((edges.view(1, 1, -1, 1, 1) - blur(j, 1.5, 1.0).unsqueeze(2)) / 0.25)
+    expected = blur(z, 2.0, 1.0)[..., pad : pad + 12, pad : pad + 9]
+    torch.testing.assert_close(m.cdfs(img, 1.5, 2.0), expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(m.cdfs(img[0], 1.5, 2.0), expected[:1], rtol=1e-12, atol=1e-12)
+    rel = LOILoss(relative=True, **opts)
+    torch.testing.assert_close(rel.cdfs(img, 1.5 / 9, 2.0 / 9), expected, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match=r"^sigma must be finite and >= 0, got \(-1.0,\)$"):
+        m.cdfs(img, -1.0, 2.0)
+    with pytest.raises(ValueError, match=r"^alpha must be finite and >= 0, got \(-2.0,\)$"):
+        m.cdfs(img, 1.0, -2.0)
+    with pytest.raises(TypeError, match="^img must be a torch.Tensor, got ndarray$"):
+        m.cdfs(img.numpy(), 1.0, 2.0)
+
+
+def test_memory_estimate_scales_with_its_factors():
+    """Bytes ~ B C' K Hp Wp x (tensors kept): (C, H, W) is one batch item, luminance has one
+    channel, float64 doubles it, renormalised borders have no margin, low_memory keeps 5 + |sigmas|."""
+    m = LOILoss()
+    est = m.memory_estimate((2, 3, 40, 24))
+    assert m.memory_estimate((3, 40, 24)) * 2 == est
+    assert m.memory_estimate((2, 3, 40, 24), torch.float64) == 2 * est
+    assert LOILoss(channels="luminance").memory_estimate((2, 3, 40, 24)) * 3 == est
+    assert LOILoss(border="renormalize").memory_estimate((2, 3, 40, 24)) * 60 * 44 == est * 40 * 24
+    assert LOILoss(low_memory=True).memory_estimate((2, 3, 40, 24)) * (6 * 2 + 2) == est * (5 + 2)
+
+
+def test_memory_warning_once_above_2_gib_unless_low_memory():
+    x, y = _rand(1, 1, 6, 6), _rand(1, 1, 6, 6, seed=1)
+    calls = []
+    for low_memory, est, warns in [(False, 2**31 + 1, True), (False, 2**31, False), (True, 2**40, False)]:
+        m = LOILoss(alphas=(1,), sigmas=(0,), low_memory=low_memory)
+        m.memory_estimate = lambda shape, dtype, est=est: calls.append((shape, dtype)) or est  # noqa: E731
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            m(x, y)
+            m(x, y)  # at most once per module
+        msgs = [str(w.message) for w in caught]
+        if warns:
+            assert len(msgs) == 1 and msgs[0].startswith("LOI loss needs ~2.0 GiB for autograd at (1, 1, 6, 6)"), msgs
+            assert msgs[0].endswith("consider low_memory=True")
+        else:
+            assert msgs == []
+    assert calls[0] == ((1, 1, 6, 6), torch.float32)
+
+
+def test_mask_shapes_and_checks():
+    """A mask is (B|1, 1|C, H, W) or (1|C, H, W), broadcast over the batch; per-channel masks
+    weight channels; bad masks are refused with the reason."""
+    x, y = _rand(2, 3, 8, 8, dtype=D64), _rand(2, 3, 8, 8, seed=1, dtype=D64)
+    kw = dict(alphas=(0, 2), sigmas=(0,), border="renormalize", reduction="none")
+    single = _rand(1, 1, 8, 8, seed=2) + 0.1  # float32 mask for float64 images
+    ref = loi_loss(x, y, mask=single.to(D64).expand(2, 3, 8, 8), **kw)
+    for mask in (single, single[0], single.expand(2, 1, 8, 8), single.expand(1, 3, 8, 8), single.expand(1, 3, 8, 8)[0]):
+        torch.testing.assert_close(loi_loss(x, y, mask=mask, **kw), ref, rtol=1e-12, atol=0)
+    per_channel = torch.zeros(1, 3, 8, 8)
+    per_channel[:, 1] = 1  # normalised by its channel mean's sum: the mean over green alone
+    only_g = loi_loss(x[:, 1:2], y[:, 1:2], **kw)
+    torch.testing.assert_close(loi_loss(x, y, mask=per_channel, **kw), only_g, rtol=1e-12, atol=0)
+    bad = [
+        (torch.ones(8, 8).tolist(), TypeError, "mask must be a torch.Tensor, got list"),
+        (torch.ones(8, 8), ValueError, r"mask must be \(B, 1, H, W\) or \(B, C, H, W\) for images \(2, 3, 8, 8\), got \(8, 8\)"),
+        (torch.ones(3, 1, 8, 8), ValueError, r"got \(3, 1, 8, 8\)"),
+        (torch.ones(1, 2, 8, 8), ValueError, r"got \(1, 2, 8, 8\)"),
+        (torch.ones(1, 1, 8, 7), ValueError, r"got \(1, 1, 8, 7\)"),
+        (torch.full((1, 1, 8, 8), -0.5), ValueError, "^mask must be finite and >= 0$"),
+        (torch.full((1, 1, 8, 8), float("nan")), ValueError, "^mask must be finite and >= 0$"),
+        (torch.stack([torch.ones(1, 8, 8), torch.zeros(1, 8, 8)]), ValueError, "^mask is zero everywhere for some batch item: nothing to compare$"),
+    ]
+    for mask, error, match in bad:
+        with pytest.raises(error, match=match):
+            loi_loss(x, y, mask=mask, **kw)
+    with pytest.raises(ValueError, match="mask has 3 channels but the compared images have 1"):
+        loi_loss(x, y, mask=torch.ones(1, 3, 8, 8), channels="luminance", **kw)
+
+
+def test_mask_per_batch_item():
+    """Each batch item is weighted by its own mask, normalised by its own sum."""
+    x, y = _rand(2, 1, 8, 8, dtype=D64), _rand(2, 1, 8, 8, seed=1, dtype=D64)
+    mask = torch.stack([_rand(1, 8, 8, seed=2, dtype=D64), 5 * _rand(1, 8, 8, seed=3, dtype=D64).square()])
+    kw = dict(alphas=(0, 2), sigmas=(1,), reduction="none")
+    got = loi_loss(x, y, mask=mask, **kw)
+    singles = torch.cat([loi_loss(x[i : i + 1], y[i : i + 1], mask=mask[i : i + 1], **kw) for i in range(2)])
+    torch.testing.assert_close(got, singles, rtol=1e-12, atol=0)
+    m = LOILoss(**kw)
+    assert sum(m.terms(x, y, mask).values()).item() == pytest.approx(got.mean().item(), rel=1e-12)
+
+
+@pytest.mark.parametrize("cell_fraction", [0.0, 1.0])
+def test_truncate_reaches_every_blur(cell_fraction):
+    """With a short kernel (``truncate=1``) value and gradient equal plain autograd through
+    E1-E7 built from the same truncated blurs (cells: their exact means, float32 included)."""
+    from torchir.modules._blur import cell_means
+
+    x = _rand(1, 2, 12, 11, lo=0.05, hi=0.95, dtype=D64).requires_grad_()
+    y = _rand(1, 2, 12, 11, seed=1, lo=0.05, hi=0.95, dtype=D64)
+    s, a, beta, tr = 1.5, 2.0, 0.25, 1.0
+    edges = torch.arange(-3, 8, dtype=D64) * beta
+    cdf = lambda t: torch.special.ndtr((edges.view(1, 1, -1, 1, 1) - blur(t, s, tr).unsqueeze(2)) / beta)  # noqa: E731
+    d = cdf(x) - cdf(y)
+    if cell_fraction:
+        rh, ih = cell_means(12, a, 2, tr, D64, "cpu")
+        rw, iw = cell_means(11, a, 2, tr, D64, "cpu")
+        out, weights = rh @ d @ rw.T, ih.sum(1)[:, None] * iw.sum(1)[None, :] / (12 * 11)
+    else:
+        out, weights = blur(d, a, tr), torch.full((12, 11), 1 / (12 * 11), dtype=D64)
+    oracle = (out.abs().sum(2) * beta * weights).sum() / 2
+    opts = dict(alphas=(a,), sigmas=(s,), beta=beta, border="renormalize", truncate=tr, cell_fraction=cell_fraction)
+    got = loi_loss(x, y, **opts)
+    assert got.item() == pytest.approx(oracle.item(), rel=1e-12)
+    (g_got,), (g_ref,) = torch.autograd.grad(got, x), torch.autograd.grad(oracle, x)
+    torch.testing.assert_close(g_got, g_ref, rtol=1e-9, atol=1e-14)
+    assert LOILoss(**opts).terms(x, y)[(s, a)].item() == pytest.approx(oracle.item(), rel=1e-12)
+    x32 = x.detach().float().requires_grad_()
+    got32 = loi_loss(x32, y.float(), **opts)
+    (g32,) = torch.autograd.grad(got32, x32)
+    assert got32.dtype == torch.float32 and torch.allclose(g32.double(), g_ref, rtol=1e-3, atol=1e-7)
+
+
+def test_cell_fraction_changes_the_loss_in_both_twins():
+    target = _disk(torch.tensor(20.0, dtype=D64))
+    cx = torch.tensor(36.0, dtype=D64)
+    exact, approx = loi_loss(_disk(cx), target), loi_loss(_disk(cx), target, cell_fraction=0.5)
+    assert approx.item() != pytest.approx(exact.item(), rel=1e-6)  # cells approximate: not the exact loss
+    assert LOILoss(cell_fraction=0.5)(_disk(cx), target).item() == pytest.approx(approx.item(), rel=1e-12)
+
+
+def test_target_cache_is_lru_keyed_on_tensor_shape_and_dtype():
+    """Hits need an equal target of the same shape and dtype; a new tensor is compared by
+    content, never trusted by its version counter; the least recently used entry goes first."""
+    x = _rand(1, 1, 8, 8)
+    a, b, c = (_rand(1, 1, 8, 8, seed=k) for k in (1, 2, 3))
+    m = LOILoss(alphas=(1,), sigmas=(0,), cache_target=2)
+    plain = LOILoss(alphas=(1,), sigmas=(0,), cache_target=0)
+    for target, hits in [(a, 0), (b, 0), (b, 1), (a, 2), (c, 2), (a, 3), (b, 3)]:
+        assert m(x, target).item() == pytest.approx(plain(x, target).item(), rel=1e-6)
+        assert m.cache_hits == hits, target
+    fresh = _rand(1, 1, 8, 8, seed=4)  # version 0, like the cached ones: content decides
+    assert m(x, fresh).item() == pytest.approx(plain(x, fresh).item(), rel=1e-6) and m.cache_hits == 3
+    one = LOILoss(alphas=(1,), sigmas=(0,))
+    one(x.double(), a)  # float64 target CDFs
+    one(x, a)  # float32 ones: a different key
+    assert one.cache_hits == 0
+    one(x, a)
+    assert one.cache_hits == 1
+    two, small = LOILoss(alphas=(1,), sigmas=(0,), cache_target=2), _rand(1, 1, 6, 6, seed=5)
+    two(x, a), two(small, small), two(small, small)  # the lookup passes over the 8x8 entry
+    assert two.cache_hits == 1
+
+
+def test_out_of_range_warning_threshold_and_message():
+    """Warns when more than 1 % of an image lies beyond ``value_range +- 3 beta``, naming the
+    image and the share; once per module and image, whether from forward or terms."""
+    kw = dict(alphas=(0,), sigmas=(0,), beta=0.125)
+    inside = torch.full((1, 1, 4, 4), 0.5)
+    for edge in (-0.375, 1.375, 0.0, 1.0):  # exactly +-3 beta beyond the range: not yet outside
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            loi_loss(torch.full((1, 1, 4, 4), edge), inside, **kw)
+    far = inside.clone()
+    far[..., 0, :] = 1.4  # 3.2 beta beyond hi, on 4 of 16 pixels
+    m = LOILoss(**kw)
+    with pytest.warns(UserWarning, match=r"^LOI loss: 25.0% of target's values lie beyond value_range \(0.0, 1.0\) \+- 3 beta"):
+        m(inside, far)
+    with pytest.warns(UserWarning, match=r"^LOI loss: 25.0% of rendered's values"):
+        m.terms(far, inside)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        m(far, far)
+        m.terms(far, far)

@@ -371,3 +371,103 @@ def test_pixel_batch_fields():
     torch.testing.assert_close(batch.weight, torch.full((3,), 1.0 / 3))  # 1 / (N m p), p = 1 / m
     d = s.diagnostics()
     assert d["ess_fraction"] == pytest.approx(1.0) and d["max_weight_ratio"] == pytest.approx(1.0)
+
+
+# ------------------------------------------------------------------------ pmf internals (_pmf)
+def _gauss_1d(sigma: float, r: int) -> torch.Tensor:
+    k = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float64).square() / (2 * sigma**2))
+    return k / k.sum()
+
+
+@pytest.mark.parametrize(("sigma", "radius"), [(0.3, 1), (1.0, 2), (1.6, 4)])
+def test_denoise_blur_radius_is_max_1_ceil_2_sigma(sigma, radius):
+    """A5: a Gaussian of ``sigma`` low-res pixels on a ``2 max(1, ceil(2 sigma)) + 1`` window:
+    a delta in the middle becomes the normalised separable kernel, zero beyond its radius."""
+    x = torch.zeros(1, 11, 11, dtype=torch.float64)
+    x[0, 5, 5] = 1.0
+    out = _pmf.denoise_upsample(x, (11, 11), sigma)
+    expected = torch.zeros(11, 11, dtype=torch.float64)
+    k = _gauss_1d(sigma, radius)
+    expected[5 - radius : 6 + radius, 5 - radius : 6 + radius] = k[:, None] * k[None, :]
+    torch.testing.assert_close(out[0], expected, rtol=1e-5, atol=1e-7)
+    assert torch.count_nonzero(out[0][expected == 0]) == 0  # exactly: no taps beyond the radius
+
+
+def test_denoise_border_replicates_and_thin_maps_are_not_blurred():
+    x = torch.zeros(1, 6, 6, dtype=torch.float64)
+    x[0, 0, 0] = 1.0  # corner: replicate keeps the (r + 1)^2 - 1 outside taps on the corner pixel
+    k = _gauss_1d(1.0, 2)
+    corner = float(k[:3].sum() ** 2)
+    assert _pmf.denoise_upsample(x, (6, 6), 1.0)[0, 0, 0].item() == pytest.approx(corner, rel=1e-5)
+    row = torch.rand(1, 1, 5, dtype=torch.float64)  # one pixel high: no blur at all
+    torch.testing.assert_close(_pmf.denoise_upsample(row, (1, 5), 1.0), row, rtol=0, atol=0)
+    two = torch.rand(1, 2, 5, dtype=torch.float64)  # two pixels high: blurred
+    assert not torch.allclose(_pmf.denoise_upsample(two, (2, 5), 1.0), two)
+
+
+def test_upsampling_is_half_pixel_bilinear():
+    """``align_corners=False``: [a, b] -> [a, (3a + b)/4, (a + 3b)/4, b]; negatives clamp to 0."""
+    x = torch.tensor([[[1.0, 3.0]]], dtype=torch.float64)
+    torch.testing.assert_close(_pmf.denoise_upsample(x, (1, 4), 0.0), torch.tensor([[[1.0, 1.5, 2.5, 3.0]]], dtype=torch.float64))
+    assert _pmf.denoise_upsample(-x, (1, 4), 0.0).abs().sum() == 0
+
+
+def test_pmf_defaults_views_and_2d_maps():
+    """Documented defaults (alpha 0.1, equal levels, sigma 1); views from p1's first axis, a
+    2-D map is one view."""
+    g = torch.Generator().manual_seed(0)
+    p1, p2 = torch.rand(2, 4, 3, generator=g), torch.rand(2, 4, 3, generator=g)
+    pmf, _ = _pmf.pmf_from_maps(p1, p2, (8, 6))
+    explicit, _ = _pmf.pmf_from_maps(p1, p2, (8, 6), alpha=0.1, multires="equal", sigma=1.0)
+    assert pmf.shape == (2, 8, 6) and torch.equal(pmf, explicit)
+    assert not torch.allclose(pmf, _pmf.pmf_from_maps(p1, p2, (8, 6), sigma=2.0)[0])
+    single, _ = _pmf.pmf_from_maps(p1[0], p2[0], (8, 6))
+    torch.testing.assert_close(single, _pmf.pmf_from_maps(p1[:1], p2[:1], (8, 6))[0], rtol=0, atol=0)
+    assert single.shape == (1, 8, 6)
+    full, _ = _pmf.pmf_from_maps(p1, None, (8, 6), alpha=1.0)  # alpha = 1: the uniform pmf
+    torch.testing.assert_close(full, torch.full((2, 8, 6), 1 / 96, dtype=torch.float64), rtol=1e-12, atol=0)
+
+
+def test_fallback_level_mixes_in_as_uniform_and_is_counted():
+    """A zero level contributes the uniform pmf with its level weight: with levels (q, 0),
+    ``p = (1 - alpha) (q / sum q + 1/m) / 2 + alpha / m``; ``uniform_levels`` counts them."""
+    g = torch.Generator().manual_seed(1)
+    q = torch.rand(1, 4, 4, generator=g, dtype=torch.float64)
+    pmf, stats = _pmf.pmf_from_maps([q, torch.zeros(1, 2, 2)], None, (4, 4), alpha=0.2, sigma=0.0)
+    level = q.sqrt() / q.sqrt().sum()
+    torch.testing.assert_close(pmf, 0.8 * (level + 1 / 16) / 2 + 0.2 / 16, rtol=1e-12, atol=0)
+    assert stats["uniform_levels"] == 1.0
+    assert _pmf.pmf_from_maps([q, q[:, :2, :2]], None, (4, 4))[1]["uniform_levels"] == 0.0
+    assert _pmf.pmf_from_maps([q * 0, q[:, :2, :2] * 0], None, (4, 4))[1]["uniform_levels"] == 2.0
+
+
+def test_pmf_argument_errors_name_the_argument():
+    ok = torch.rand(1, 4, 4)
+    for kwargs, match in [
+        (dict(alpha=1.5), r"^alpha must be in \[0, 1\], got 1.5$"),
+        (dict(multires="sum"), r"^multires must be 'equal' or 'paper', got 'sum'$"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            _pmf.pmf_from_maps(ok, ok, (4, 4), **kwargs)
+    with pytest.raises(ValueError, match="^p1 has no levels$"):
+        _pmf.pmf_from_maps([], None, (4, 4))
+    with pytest.raises(ValueError, match=r"^p2 must be \(1, h, w\) \(one map per view\), got \(2, 4, 4\)$"):
+        _pmf.pmf_from_maps(ok, torch.rand(2, 4, 4), (4, 4))
+    for which in ("p1", "p2"):
+        maps = {"p1": ok, "p2": ok.clone()}
+        maps[which] = torch.full((1, 4, 4), float("inf"))
+        with pytest.warns(UserWarning, match=f"^{which} has NaN/Inf entries: this level falls back to the uniform pmf$"):
+            _pmf.pmf_from_maps(maps["p1"], maps["p2"], (4, 4))
+
+
+def test_cumulative_is_float64_and_draws_invert_it():
+    """Inverse-CDF draws from float64 uniforms of the generator (checked with bisect)."""
+    import bisect
+
+    pmf = torch.rand(50, generator=torch.Generator().manual_seed(2)) ** 4  # float32 in, float64 out
+    cdf = _pmf.cumulative(pmf)
+    assert cdf.dtype == torch.float64 and cdf[-1].item() == 1.0
+    index, _ = _pmf.draw(cdf, 2000, torch.Generator().manual_seed(3))
+    u = torch.rand(2000, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    expected = [bisect.bisect_right(cdf.tolist(), v) for v in u.tolist()]
+    assert index.tolist() == expected
