@@ -1,8 +1,12 @@
 """Shared fixtures: tiny scenes, built once per session so Dr.Jit's kernels are reused."""
 from __future__ import annotations
 
-import pytest
-import torch
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads OpenMP (see torchir/__init__.py)
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 import torchir
 

@@ -99,3 +99,16 @@ def test_count_kernels_sees_compilation_and_reuse():
         dr.eval(dr.sin(x) * marker)
     assert first.launched == 1 and first.cache_misses == 1
     assert second.launched == 1 and second.cache_misses == 0 and second.compiled == 0
+
+
+@pytest.mark.parametrize("preset", [None, "ACTIVE"])
+def test_openmp_waits_passively_unless_the_user_says_otherwise(preset):
+    # torch's OpenMP threads busy-wait by default and take the cores Dr.Jit's pool needs
+    # (torchir/__init__.py); a user's own setting wins
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if preset is not None:
+        env["OMP_WAIT_POLICY"] = preset
+    code = "import os, torchir, torch; print(os.environ['OMP_WAIT_POLICY'])"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == (preset or "PASSIVE")

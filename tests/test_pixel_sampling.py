@@ -2,6 +2,9 @@
 unbiased sampled gradient against full-image gradients, and the trainer's pixel mode."""
 from __future__ import annotations
 
+import csv
+from pathlib import Path
+
 import math
 
 import pytest
@@ -139,7 +142,7 @@ def _fit(tmp_path, steps, **model):
     module = InverseRenderingModule(**{"scene": "cbox", "resolution": RES, "spp": 1, "lr": 0.05, **model})
     trainer = pl.Trainer(
         max_steps=steps, logger=pl.loggers.CSVLogger(tmp_path), enable_checkpointing=False,
-        enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path,
+        enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path, log_every_n_steps=10,
     )
     trainer.fit(module, datamodule=ViewDataModule(target_spp=64))
     return module, trainer
@@ -164,6 +167,9 @@ def test_trainer_pixel_mode_reduces_parameter_error(tmp_path):
     # max_weight_ratio = N max w <= 10 (a pmf without the uniform mix breaks it).
     assert "sampler/ess_fraction" in metrics and 0 < float(metrics["sampler/max_weight_ratio"]) <= 10.0 + 1e-4
     assert module.sampler.refreshes == 4  # steps 0, 10, 20, 30
+    # the diagnostics are logged on the steps the logger writes (every 10th), and only there
+    rows = list(csv.DictReader(open(Path(trainer.logger.log_dir) / "metrics.csv")))
+    assert [int(r["step"]) for r in rows if r.get("sampler/ess_fraction")] == [9, 19, 29, 39]
 
 
 def test_trainer_rejects_pixel_coupling_losses_and_denoisers():

@@ -35,6 +35,16 @@ def _latents(ckpt: Path) -> dict[str, torch.Tensor]:
     return {k: v for k, v in state.items() if k.endswith("latent")}
 
 
+def test_diagnostics_logged_on_exactly_the_steps_the_logger_writes(tmp_path):
+    # paths_per_step and sampler/* are only logged on steps the logger writes (they cost
+    # ~0.3 ms each): if the rule were off by a step, the written rows would lack them
+    assert _fit(tmp_path, "--trainer.max_steps", "7", "--trainer.log_every_n_steps", "3", "--model.spp", "1") == 0
+    rows = list(csv.DictReader(open(_run_dir(tmp_path) / "metrics.csv")))
+    written = [r for r in rows if r.get("loss")]
+    assert [int(r["step"]) for r in written] == [2, 5]  # every 3rd step (0-based 2, 5)
+    assert all(float(r["paths_per_step"]) == 16 * 16 * 2 for r in written)
+
+
 def test_quickstart_recovers_albedos_and_writes_outputs(tmp_path):
     assert _fit(tmp_path, "--trainer.max_steps", "40", "--model.spp", "4") == 0
     run = _run_dir(tmp_path)

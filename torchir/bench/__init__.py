@@ -22,6 +22,7 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "loi": "torchir.bench.loi",
     "restir": "torchir.bench.restir",
     "combined": "torchir.bench.combined",
+    "stepcost": "torchir.bench.stepcost",
     "soak": "torchir.bench.soak",
 }
 ALL = tuple(SUITES)

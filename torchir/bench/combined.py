@@ -191,16 +191,20 @@ def _error_text(error: BaseException, limit: int = 240) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def run_configuration(config: Configuration, seed: int, resolution: int, steps: int, quick: bool, workdir: Path) -> dict[str, Any]:
+def run_configuration(
+    config: Configuration, seed: int, resolution: int, steps: int, quick: bool, workdir: Path, target_spp: int | None = None,
+) -> dict[str, Any]:
     """Train ``config`` for ``steps`` steps (seed ``seed``) and return its measurements; a
     configuration that raises returns ``status`` ``"rejected"`` (construction failed) or
-    ``"failed"`` (training failed) with the error."""
+    ``"failed"`` (training failed) with the error. ``target_spp`` overrides the scene's."""
     import lightning.pytorch as pl
     import torch
 
     from torchir.training import InverseRenderingModule, ViewDataModule
 
     setup = scene_setup(config.scene, resolution, quick)
+    if target_spp is not None:
+        setup["data"]["target_spp"] = target_spp
     model = {"lr": LR, **setup["model"], **config.model, "seed": seed}
     if isinstance(model.get("sampler"), dict) and model["sampler"].get("type") in ("uniform", "loss", "adaptive", "restir"):
         model["sampler"] = {**model["sampler"], "seed": seed}

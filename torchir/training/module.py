@@ -224,6 +224,16 @@ class InverseRenderingModule(pl.LightningModule):
             kwargs["views"] = views
         return self.denoiser(images, targets, **kwargs)
 
+    def _loggers_write(self) -> bool:
+        """Whether the loggers write this step's metrics (``trainer.log_every_n_steps``, the rule
+        of Lightning's logger connector). Loss, image and parameter error are logged every step
+        (progress bar, curves); the diagnostics only the logs show, only on these steps."""
+        trainer = self._trainer
+        if trainer is None:
+            return True
+        every = trainer.log_every_n_steps
+        return every > 0 and ((self.global_step + 1) % every == 0 or trainer.should_stop)
+
     @property
     def pixel_mode(self) -> bool:
         """Whether steps render sampled pixels (a pixel sampler is set) instead of full images."""
@@ -294,10 +304,11 @@ class InverseRenderingModule(pl.LightningModule):
         self.log("loss", loss, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True)
         if not self._loss_is_image_error:  # else it would repeat the loss
             self.log("image_error", image_error, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True)
-        self.log("paths_per_step", float(paths + stage1_paths), on_step=True, on_epoch=False, batch_size=batch_size, reduce_fx="sum", sync_dist=True)
-        if self.sampler is not None and hasattr(self.sampler, "diagnostics"):
-            for name, value in self.sampler.diagnostics().items():
-                self.log(f"sampler/{name}", float(value), on_step=True, on_epoch=False, batch_size=batch_size)
+        if self._loggers_write():  # each self.log costs ~0.3 ms: a 5%-pixel step takes ~20 ms
+            self.log("paths_per_step", float(paths + stage1_paths), on_step=True, on_epoch=False, batch_size=batch_size, reduce_fx="sum", sync_dist=True)
+            if self.sampler is not None and hasattr(self.sampler, "diagnostics"):
+                for name, value in self.sampler.diagnostics().items():
+                    self.log(f"sampler/{name}", float(value), on_step=True, on_epoch=False, batch_size=batch_size)
         error = self.parameter_error(self._truth)
         if error is not None:
             self.log("param_error", error, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size)
