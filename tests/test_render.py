@@ -305,3 +305,48 @@ def test_moved_geometry_renders_as_a_fresh_scene():
             image = render(moved, {key: w}, spp=4, seed=3)
         reference = render(fresh, {key: w}, spp=4, seed=3)
     assert torch.equal(image, reference)
+
+
+class _RecordingIntegrator:
+    """A stateful integrator for render(sampler=): Mitsuba's own render as the step, and a
+    backward that records what it was given."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple] = []
+
+    def step(self, mi_scene, sensor, seed, spp):
+        return mi.render(mi_scene, sensor=sensor, seed=seed, spp=spp), ("cache", seed)
+
+    def backward(self, mi_scene, cache, grad_image, seed, spp, geometry, params):
+        self.calls.append((cache, float(dr.sum(grad_image.array)[0]), seed, spp, geometry, sorted(params)))
+
+
+class _RecordingSampler:
+    def __init__(self, scene) -> None:
+        self.scene, self.integrator, self.refused = scene, _RecordingIntegrator(), set()
+
+    def render_seed(self, seed: int) -> int:
+        return seed + 1
+
+    def check_gradients(self, grad_names) -> None:
+        bad = self.refused & set(grad_names)
+        if bad:
+            raise ValueError(f"cannot differentiate {sorted(bad)}")
+
+
+def test_render_takes_any_sampler_with_its_own_integrator(cbox, red):
+    """render(sampler=) needs only the RenderSampler protocol (the boundary does not know the
+    ReSTIR classes): the step's image comes back as (C, H, W), and backward reaches the
+    integrator with this render's cache, the gradient image, seed_grad and spp_grad."""
+    sampler = _RecordingSampler(cbox)
+    img = render(cbox, {KEY: red}, spp=2, seed=5, spp_grad=3, seed_grad=9, sampler=sampler)
+    expected = torch.as_tensor(mi.render(cbox.mi_scene, seed=6, spp=2).numpy()).permute(2, 0, 1)
+    torch.testing.assert_close(img.detach(), expected)
+    (2.0 * img).sum().backward()
+    (call,) = sampler.integrator.calls
+    assert call == (("cache", 6), 2.0 * img.numel(), 10, 3, False, [KEY])
+    sampler.refused = {KEY}
+    with pytest.raises(ValueError, match=r"cannot differentiate \['red.reflectance.value'\]"):
+        render(cbox, {KEY: red}, spp=1, sampler=sampler)
+    with pytest.raises(TypeError, match="takes a sampler with its own integrator"):
+        render(cbox, {KEY: red}, spp=1, sampler=object())

@@ -17,7 +17,7 @@ import torch
 import torchir
 from torchir.functions import render
 from torchir.samplers import SAMPLERS, ReSTIRSampler
-from torchir.samplers._knn import knn_grid, knn_kdtree
+from torchir.integrators._knn import knn_grid, knn_kdtree
 
 RES = 24
 KEY = "canvas.bsdf.reflectance.data"
@@ -487,7 +487,7 @@ def test_clear_errors(oxalis, cbox):
         ReSTIRSampler(oxalis, candidates=0)
     with pytest.raises(ValueError, match="radius"):
         ReSTIRSampler(oxalis, radius=-1.0)
-    with pytest.raises(TypeError, match="takes a torchir.samplers.ReSTIRSampler, got object"):
+    with pytest.raises(TypeError, match="takes a sampler with its own integrator, such as torchir.samplers.ReSTIRSampler, got object"):
         render(oxalis, {}, spp=1, sampler=object())
     with pytest.raises(ValueError, match="another Scene"):
         render(cbox, {}, spp=1, sampler=ReSTIRSampler(oxalis))

@@ -11,7 +11,7 @@ from ..scene import Scene
 from . import _args
 from ._bound_op import BoundRenderOp
 from ._passes import passes
-from ._restir_op import render_restir_drjit
+from ._sampler_op import RenderSampler, render_with_sampler_drjit
 
 __all__ = ["render"]
 
@@ -36,25 +36,14 @@ def _render_drjit(scene: Scene, values: dict, grad_names: frozenset, settings: _
 
 
 def _check_sampler(scene: Scene, sampler: object, grad_names: frozenset[str]) -> None:
-    from ..samplers.restir import ReSTIRSampler
-
-    if not isinstance(sampler, ReSTIRSampler):
+    if not isinstance(sampler, RenderSampler):
         raise TypeError(
-            f"render(sampler=...) takes a torchir.samplers.ReSTIRSampler, got {type(sampler).__name__} "
-            f"(pixel samplers go through render_pixels)"
+            f"render(sampler=...) takes a sampler with its own integrator, such as "
+            f"torchir.samplers.ReSTIRSampler, got {type(sampler).__name__} (pixel samplers go through render_pixels)"
         )
     if sampler.scene is not scene:
-        raise ValueError("the ReSTIRSampler was built for another Scene: build one per scene")
-    # ReSTIR differentiates the path contribution of the reservoirs' light samples, which are
-    # not rebuilt when a light moves: light placement gets no gradient (it failed inside Dr.Jit).
-    emitters = {e.id() for e in scene.mi_scene.emitters()}
-    for name in grad_names:
-        owner, _, field = name.partition(".")
-        if owner in emitters and not field.startswith(("intensity", "radiance", "irradiance", "scale")):
-            raise ValueError(
-                f"ReSTIR gives no gradient for the light parameter {name!r} (light samples are reused, not "
-                f"re-sampled, when a light moves): optimise it without sampler=, e.g. with the scene's own integrator"
-            )
+        raise ValueError(f"the {type(sampler).__name__} was built for another Scene: build one per scene")
+    sampler.check_gradients(grad_names)
 
 
 def render(
@@ -85,9 +74,11 @@ def render(
         spp_grad: samples per pixel of the gradient pass (default: ``spp``).
         seed_grad: seed of the gradient pass (default: a hash of ``seed``; must differ from it,
             so that the gradient is independent of the image noise).
-        sampler: a :class:`torchir.samplers.ReSTIRSampler` of this scene: render direct
-            illumination by ReSTIR (its reservoirs advance by one step) and back-propagate
-            its interior-term gradient (paper 004). ``None``: the scene's integrator.
+        sampler: a sampler of this scene with its own stateful integrator
+            (:class:`~torchir.functions._sampler_op.RenderSampler`), e.g. a
+            :class:`torchir.samplers.ReSTIRSampler`: render direct illumination by ReSTIR (its
+            reservoirs advance by one step) and back-propagate its interior-term gradient
+            (paper 004). ``None``: the scene's integrator.
 
     Returns:
         ``(C, H, W)`` float32 linear radiance (C = 3 for RGB films).
@@ -104,7 +95,7 @@ def render(
     values, grad_names = _args.split_params(scene, params)
     if sampler is not None:
         _check_sampler(scene, sampler, grad_names)
-        image = render_restir_drjit(scene, values, grad_names, settings, sampler)  # (H, W, C)
+        image = render_with_sampler_drjit(scene, values, grad_names, settings, sampler)  # (H, W, C)
         return image.permute(2, 0, 1)
     image = _render_drjit(scene, values, grad_names, settings)  # (H, W, C)
     return image.permute(2, 0, 1)

@@ -71,7 +71,7 @@ import mitsuba as mi
 import numpy as np
 from mitsuba.python.ad.integrators.common import RBIntegrator
 
-from ..samplers import _knn
+from . import _knn
 from ._light import LightSample, Reservoirs, eval_target, rebuild_interaction, sample_candidate
 
 __all__ = ["ReSTIRDirectIntegrator", "check_scene", "StepCache"]

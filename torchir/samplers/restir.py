@@ -118,6 +118,28 @@ class ReSTIRSampler:
 
         return int(mi.sample_tea_32(seed, self.seed)[0])
 
+    def check_gradients(self, grad_names) -> None:
+        """Refuse light-placement parameters; warn once about shape parameters (stage v2)."""
+        from ..scene import _GEOMETRY_KEYS
+
+        # ReSTIR differentiates the path contribution of the reservoirs' light samples, which are
+        # not rebuilt when a light moves: light placement gets no gradient (it failed inside Dr.Jit).
+        emitters = {e.id() for e in self.scene.mi_scene.emitters()}
+        for name in grad_names:
+            owner, _, field = name.partition(".")
+            if owner in emitters and not field.startswith(("intensity", "radiance", "irradiance", "scale")):
+                raise ValueError(
+                    f"ReSTIR gives no gradient for the light parameter {name!r} (light samples are reused, not "
+                    f"re-sampled, when a light moves): optimise it without sampler=, e.g. with the scene's own integrator"
+                )
+        if any(name.rsplit(".", 1)[-1] in _GEOMETRY_KEYS for name in grad_names):
+            self.scene.warn_once(
+                "restir-geometry",
+                "ReSTIR with shape parameters (stage v2): interior term with reuse (ray-following shading "
+                "points) + boundary terms of direct_projective without reuse; the temporal support test "
+                "uses the current geometry (small bias, spec D7)",
+            )
+
     # ------------------------------------------------------------------ public state API
     def reset(self) -> None:
         """Drop all reservoirs (also automatic when the emitter count or a mesh's topology

@@ -1,0 +1,69 @@
+"""The Dr.Jit op behind ``render(..., sampler=...)``: a render by a sampler's stateful integrator.
+
+:class:`RenderSampler` is all :func:`torchir.functions.render` knows of such a sampler (e.g.
+:class:`torchir.samplers.ReSTIRSampler`, paper 004): the render boundary does not import the
+sampler classes. Same binding discipline as every torchir render (:class:`BoundRenderOp`: the
+backward re-binds this render's own values when another render ran in between). The primal
+advances the integrator's state and keeps this step's paths on the op itself, so each backward
+differentiates exactly the paths of its own forward, even when several renders are pending.
+These passes are not frozen (the integrator keeps state across calls).
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any, Protocol, runtime_checkable
+
+import drjit as dr
+import mitsuba as mi
+
+from ..scene import _GEOMETRY_KEYS
+from ._bound_op import BoundRenderOp
+
+
+@runtime_checkable
+class RenderSampler(Protocol):
+    """A sampler that renders with its own stateful integrator.
+
+    Attributes:
+        scene: the :class:`torchir.Scene` it was built for.
+        integrator: ``step(mi_scene, sensor, seed, spp) -> (image (H, W, C) TensorXf, cache)``
+            advances the state by one render; ``backward(mi_scene, cache, grad_image, seed, spp,
+            geometry=bool, params=dict)`` back-propagates that render's paths.
+    """
+
+    scene: Any
+    integrator: Any
+
+    def render_seed(self, seed: int) -> int:
+        """The integrator's seed for a render with ``seed``."""
+
+    def check_gradients(self, grad_names: Iterable[str]) -> None:
+        """Raise for parameters whose gradient it cannot give; warn where it approximates."""
+
+
+class SamplerRenderOp(BoundRenderOp):
+    """Primal: one step of the sampler's integrator; adjoint: its gradient of that step."""
+
+    def eval(self, scene, values, grad_names, settings, sampler):
+        self.sampler = sampler
+        return super().eval(scene, values, grad_names, settings)
+
+    def primal(self) -> mi.TensorXf:
+        s, r = self.settings, self.sampler
+        image, self.cache = r.integrator.step(self.scene.mi_scene, s.sensor, r.render_seed(s.seed), s.spp)
+        return image
+
+    def adjoint(self, grad_out: mi.TensorXf) -> None:
+        s, r = self.settings, self.sampler
+        geometry = any(name.rsplit(".", 1)[-1] in _GEOMETRY_KEYS for name in self.grad_names)
+        r.integrator.backward(
+            self.scene.mi_scene, self.cache, grad_out, r.render_seed(s.seed_grad), s.spp_grad,
+            geometry=geometry, params=self.fresh,
+        )
+        self.cache = None  # free the paths
+
+
+@dr.wrap(source="torch", target="drjit")
+def render_with_sampler_drjit(scene, values: dict, grad_names: frozenset, settings, sampler):
+    native = {name: scene.to_drjit(name, value) for name, value in values.items()}
+    return dr.custom(SamplerRenderOp, scene, native, grad_names, settings, sampler)
