@@ -17,7 +17,7 @@ import torch
 import torchir
 from torchir.functions import render
 from torchir.samplers import SAMPLERS, ReSTIRSampler
-from torchir.integrators._knn import knn_grid, knn_kdtree
+from torchir.integrators._knn import NeighbourSearch, knn_grid, knn_kdtree
 
 RES = 24
 KEY = "canvas.bsdf.reflectance.data"
@@ -388,6 +388,25 @@ def test_knn_empty_sets():
     for fn in (knn_kdtree, knn_grid):
         idx, ok = fn(empty, one, 2, 1.0)
         assert len(idx) == 2 and not np.asarray(ok[0]).any()
+
+
+def test_auto_neighbour_search_times_both_then_keeps_the_faster_with_the_same_neighbours():
+    rng = np.random.default_rng(3)
+    pts = mi.Point3f(*(mi.Float(rng.random(400).astype(np.float32)) for _ in range(3)))
+    qs = mi.Point3f(*(mi.Float(rng.random(50).astype(np.float32)) for _ in range(3)))
+    want_idx, want_ok = knn_kdtree(pts, qs, 3, 0.2)
+    search = NeighbourSearch("auto", timed=2)
+    for call in range(7):  # 1 untimed + 2 timed calls per back-end, then the choice
+        idx, ok = search(pts, qs, 3, 0.2)
+        for a, b, c, d in zip(idx, want_idx, ok, want_ok):
+            assert np.array_equal(np.asarray(c), np.asarray(d))
+            assert np.array_equal(np.asarray(a)[np.asarray(c)], np.asarray(b)[np.asarray(d)])
+        assert (search.chosen is None) == (call < 5)
+    assert search.chosen in ("kdtree", "grid") and all(len(v) == 2 for v in search.seconds.values())
+    assert search.chosen == min(search.seconds, key=lambda b: float(np.median(search.seconds[b])))
+    assert NeighbourSearch("grid").chosen == "grid"
+    with pytest.raises(ValueError, match="nn_backend must be 'auto', 'kdtree' or 'grid', got 'ball'"):
+        NeighbourSearch("ball")
 
 
 # ---------------------------------------------------------------------------------- T-U9

@@ -285,6 +285,36 @@ def _restir_light_off(result: Any, ctx: dict) -> str | None:
     return None
 
 
+def _restir_scales_with_emission(result: Any, ctx: dict) -> str | None:
+    """ReSTIR's resampling is invariant to a constant factor on the emission (the target
+    ``p_hat`` and the weights ``W`` scale inversely), so the same seeds give the default
+    light's images and albedo gradient times ``L / L0``, channel by channel."""
+    *images, grad, _ = result
+    *base_images, base_grad, _ = _restir()(ctx)
+    ratio = 1e6 / ctx["restir_scene"].get(LIGHT)
+    for i, (out, base) in enumerate(zip(images, base_images)):
+        if not torch.allclose(out, base * ratio.view(3, 1, 1), rtol=1e-4, atol=0):
+            return f"image {i} not linear in emission"
+    if not torch.allclose(grad, base_grad * ratio, rtol=1e-4, atol=0):
+        return f"albedo gradient {grad.tolist()} is not {(base_grad * ratio).tolist()}"
+    return None
+
+
+def _towards_target(inputs: Callable[[], tuple]) -> Callable[[Any, dict], str | None]:
+    """The loss is > 0 and its gradient points from the image towards the target, per value."""
+
+    def check(result: Any, ctx: dict) -> str | None:
+        loss, grad = result
+        x, y = inputs()[:2]
+        if float(loss.detach()) <= 0:
+            return f"loss {float(loss)} should be > 0 for different images"
+        if not bool((grad * (x - y) > 0).all()):
+            return f"gradient {grad.flatten().tolist()} should have the sign of image - target {(x - y).flatten().tolist()}"
+        return None
+
+    return check
+
+
 def _restir_b1(result: Any, ctx: dict) -> str | None:
     *images, grad, stats = result
     if float(stats[1]) != 1.0:
@@ -335,12 +365,12 @@ CASES: list[Case] = [
     Case("LOILoss", "constant images", _module(lambda: _loi(), _images(((1, 3, 16, 16), lambda x: torch.full_like(x, 0.3)), ((1, 3, 16, 16), lambda x: torch.full_like(x, 0.7)))), check=_loi_gradient(lambda g: g, "negative")),
     Case("LOILoss", "values far outside the range (bins with no mass)", _module(lambda: _loi(), _images(((1, 3, 16, 16), lambda x: x + 50), ((1, 3, 16, 16), lambda x: -x))), check=_loi_gradient(lambda g: g[..., 6:-6, 6:-6], "zero")),
     Case("LOILoss", "1e6 firefly", _module(lambda: _loi(), _images(((1, 3, 16, 16), _firefly), ((1, 3, 16, 16), None))), check=_loi_gradient(lambda g: g[..., 3, 3], "zero")),
-    Case("LOILoss", "1x1 image", _module(lambda: _loi(), _images(((1, 3, 1, 1), None), ((1, 3, 1, 1), None)))),
+    Case("LOILoss", "1x1 image", _module(lambda: _loi(), _images(((1, 3, 1, 1), None), ((1, 3, 1, 1), None))), check=_towards_target(_images(((1, 3, 1, 1), None), ((1, 3, 1, 1), None)))),
     Case("LOILoss", "NaN in target", _module(lambda: _loi(), _images(((1, 3, 8, 8), None), ((1, 3, 8, 8), _nan))), ValueError, "target"),
     Case("LOILoss", "Mitsuba (H,W,C) layout", _module(lambda: _loi(), _images(((8, 8, 3), None), ((8, 8, 3), None))), ValueError, "(H, W, C)"),
     # ReSTIR --------------------------------------------------------------------------------
     Case("ReSTIRSampler", "light switched off (empty reservoirs)", _restir(light=0.0), check=_restir_light_off),
-    Case("ReSTIRSampler", "1e6 radiance", _restir(light=1e6)),
+    Case("ReSTIRSampler", "1e6 radiance", _restir(light=1e6), check=_restir_scales_with_emission),
     Case("ReSTIRSampler", "zero albedo", _restir(albedo=0.0)),
     Case("ReSTIRSampler", "one candidate, no reuse (B.1)", _restir(preset="b1"), check=_restir_b1),
     Case("ReSTIRSampler", "light-position gradient (unsupported)", _trainer_step(scene="glossy_highlight", parameters={"light.azimuth": {"init": 0.5}}, sampler={"type": "restir"}), ValueError, "light parameter"),

@@ -51,7 +51,8 @@
      - False
    * - ``nn_backend``
      - str
-     - ``auto`` | ``kdtree`` (scipy) | ``grid`` (Dr.Jit).
+     - ``auto`` (the faster of the two on the first reuse steps, timed) | ``kdtree`` (scipy)
+       | ``grid`` (Dr.Jit); both find the same neighbours.
      - auto
 
 Only direct illumination at the first hit: emission seen by the camera plus one resampled
@@ -180,6 +181,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if cfg["nn_backend"] == "kdtree" and not _knn.have_scipy():
             raise ValueError("nn_backend='kdtree' needs scipy (pip install scipy); use 'grid' or 'auto'")
         self.nn_backend = cfg["nn_backend"]
+        self._neighbour_search = _knn.NeighbourSearch(self.nn_backend)
         self.states: dict[int, SensorState] = {}
         self.last: dict[int, StepCache] = {}
         self.stats: dict[str, float] = {}
@@ -317,7 +319,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         q_idx = dr.compress(r.valid)
         pts = dr.gather(mi.Point3f, source.p, src_idx)
         qs = dr.gather(mi.Point3f, r.p, q_idx)
-        idx_c, ok_c = _knn.knn(pts, qs, k, radius, self.nn_backend, exclude_self=exclude_self)
+        idx_c, ok_c = self._neighbour_search(pts, qs, k, radius, exclude_self=exclude_self)
         nbr, ok = [], []
         for ic, oc in zip(idx_c, ok_c):
             full_i = dr.zeros(mi.UInt32, n)
