@@ -162,7 +162,7 @@ def test_trainer_pixel_mode_reduces_parameter_error(tmp_path):
     module, trainer = _fit(tmp_path, 40, **model)
     truth = module.ground_truth()
     assert module.parameter_error(truth) < float((torch.full((3,), 0.3) - truth[KEY]).square().mean().sqrt())
-    metrics = trainer.callback_metrics
+    metrics = module.step_metrics
     # Every pixel keeps p >= alpha / m (alpha = 0.1), so no weight exceeds 1 / (N alpha):
     # max_weight_ratio = N max w <= 10 (a pmf without the uniform mix breaks it).
     assert "sampler/ess_fraction" in metrics and 0 < float(metrics["sampler/max_weight_ratio"]) <= 10.0 + 1e-4

@@ -167,7 +167,7 @@ def _recorder():
             now = time.perf_counter()
             self.step_seconds.append(now - self.t0)
             self.elapsed.append(now - self.start)
-            metrics = trainer.callback_metrics
+            metrics = pl_module.step_metrics
             self.paths.append(float(metrics["paths_per_step"]) if "paths_per_step" in metrics else float("nan"))
             self.image_error.append(float(metrics["image_error"]) if "image_error" in metrics else float("nan"))
             pl_module.project_parameters()  # the error of the iterate the next step starts from

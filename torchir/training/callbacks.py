@@ -30,7 +30,10 @@ class StepTimer(pl.Callback):
         self._start = time.perf_counter()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        pl_module.log("seconds_per_step", time.perf_counter() - self._start, on_step=True, on_epoch=False, batch_size=1)
+        seconds = time.perf_counter() - self._start
+        pl_module.step_metrics["seconds_per_step"] = seconds  # written with the step's row
+        if trainer.world_size > 1:
+            pl_module.log("seconds_per_step", seconds, on_step=True, on_epoch=False, batch_size=1)
 
 
 class NonFiniteLossGuard(pl.Callback):
@@ -115,7 +118,7 @@ class CurvePlotter(pl.Callback):
         self._start = time.perf_counter() - self._elapsed
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        metrics = trainer.callback_metrics
+        metrics = pl_module.step_metrics
         # the step whose metrics were just logged (metrics.csv's numbering): global_step has moved on
         row = {"step": float(trainer.global_step - 1), "seconds": time.perf_counter() - self._start}
         row.update({m: float(metrics[m]) for m in self.METRICS if m in metrics})
@@ -214,7 +217,7 @@ class StepProgressBar(TQDMProgressBar):
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         bar = self.train_progress_bar
         bar.n = trainer.global_step
-        metrics = trainer.callback_metrics
+        metrics = pl_module.step_metrics
         postfix = {}
         if "seconds_per_step" in metrics:
             postfix["s/step"] = f"{float(metrics['seconds_per_step']):.3g}"

@@ -209,7 +209,7 @@ class TorchirCLI(LightningCLI):
         if model.nonfinite is not None:
             raise NonFiniteLossError(model.nonfinite)
         if trainer.is_global_zero:
-            metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k in ("loss", "param_error", "image_error")}
+            metrics = {k: float(v) for k, v in model.step_metrics.items() if k in ("loss", "param_error", "image_error")}
             summary = ", ".join(f"{k} {v:.4g}" for k, v in metrics.items())
             print(f"[torchir] finished {trainer.global_step} steps ({summary}); outputs in {model.results_dir}")
 
