@@ -122,3 +122,18 @@ def test_paper_claim_line_compares_the_combination_with_each_technique_alone():
     runs[3] = _ran("oxalis_lite", "ReSTIR + target-aware denoiser", 0, 0.3, 0.04)
     assert "lowest final parameter error: yes" in tables(summarize(runs), META)
     assert "Paper claim" not in tables(summarize(runs[:2]), META)  # nothing to compare
+
+
+def test_time_to_the_baselines_final_error_per_seed():
+    # plain ends at 0.10 after 0.4 s; ReSTIR (0.3 s/step, linear from 0.2 to 0.05) first reaches
+    # 0.10 after 3 of 4 steps (0.2 - 0.15 * 3/4 = 0.0875 <= 0.10; after 2: 0.125): 0.9 s = 2.25x;
+    # a run that never gets there counts as not reached
+    runs = [_ran("oxalis_lite", "plain", 0, 0.1, 0.10), _ran("oxalis_lite", "ReSTIR", 0, 0.3, 0.05),
+            _ran("oxalis_lite", "plain", 1, 0.1, 0.10), _ran("oxalis_lite", "ReSTIR", 1, 0.3, 0.15)]
+    rows = {r["config"]: r for r in summarize(runs)["scenes"]["oxalis_lite"]}
+    assert rows["plain"]["time_to_baseline_error"] == pytest.approx(1.0) and rows["plain"]["reached_baseline_error"] == 2
+    assert rows["ReSTIR"]["reached_baseline_error"] == 1 and math.isnan(rows["ReSTIR"]["time_to_baseline_error"])
+    runs[3] = _ran("oxalis_lite", "ReSTIR", 1, 0.3, 0.05)
+    rows = {r["config"]: r for r in summarize(runs)["scenes"]["oxalis_lite"]}
+    assert rows["ReSTIR"]["time_to_baseline_error"] == pytest.approx(2.25)
+    assert "2.25 (2/2 seeds)" in tables(summarize(runs), META)

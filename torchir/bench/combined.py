@@ -311,9 +311,28 @@ def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
         base = next((r for r in rows if r["config"] == baselines.get(scene)), rows[0])
         for r in rows:
             r["baseline"] = base["config"]
+            reached = _time_to_baseline_error(runs, scene, r["config"], base["config"])
+            r["time_to_baseline_error"] = _median(reached) if reached and all(v == v for v in reached) else float("nan")
+            r["reached_baseline_error"] = sum(v == v for v in reached)
             for k in ("seconds_per_step", "paths_per_step", "peak_rss_mb", "final_param_error", "final_image_error", "train_seconds"):
                 r[f"ratio_{k}"] = r[k] / base[k] if base[k] else float("nan")
     return {"scenes": scenes, "rejected": rejected}
+
+
+def _time_to_baseline_error(runs: list[dict[str, Any]], scene: str, config: str, baseline: str) -> list[float]:
+    """Per seed: the wall time at which ``config`` first reaches the baseline run's final
+    parameter error (same seed), as a fraction of the baseline's training time; NaN if never."""
+    out = []
+    for run in runs:
+        if run["scene"] != scene or run["config"] != config or run["status"] not in ("ran",):
+            continue
+        base = next((b for b in runs if b["scene"] == scene and b["config"] == baseline and b["seed"] == run["seed"] and b["status"] == "ran"), None)
+        if base is None:
+            continue
+        goal = base["final_param_error"]
+        hit = next((t for t, e in zip(run["elapsed"], run["param_error"]) if e <= goal), None)
+        out.append(hit / base["train_seconds"] if hit is not None and base["train_seconds"] else float("nan"))
+    return out
 
 
 def _fmt(value: Any) -> str:
@@ -379,11 +398,13 @@ def tables(summary: dict[str, Any], meta: dict[str, Any]) -> str:
     for scene, rows in summary["scenes"].items():
         lines += ["", f"#### {scene}", ""]
         lines += _table(
-            ["configuration", "s/step", "x time/step", "1st step s", "total s", "x total", "paths/step", "peak RSS MB",
-             "RSS growth MB", "param RMSE (init -> final)", "x param err", "best param RMSE (step)", "image MSE", "x image err"],
+            ["configuration", "s/step", "x time/step", "1st step s", "total s", "x total", "x time to baseline's final error",
+             "paths/step", "peak RSS MB", "RSS growth MB", "param RMSE (init -> final)", "x param err", "best param RMSE (step)",
+             "image MSE", "x image err"],
             [[r["config"] + ("" if r["status"] == "ran" else f" ({r['status']})"), r["seconds_per_step"], r["ratio_seconds_per_step"],
-              r["first_step_seconds"], r["train_seconds"], r["ratio_train_seconds"], r["paths_per_step"], r["peak_rss_mb"],
-              r["rss_growth_mb"],
+              r["first_step_seconds"], r["train_seconds"], r["ratio_train_seconds"],
+              f"{_fmt(r.get('time_to_baseline_error', float('nan')))} ({r.get('reached_baseline_error', 0)}/{r['seeds']} seeds)",
+              r["paths_per_step"], r["peak_rss_mb"], r["rss_growth_mb"],
               f"{_fmt(r['initial_param_error'])} -> {_fmt(r['final_param_error'])}", r["ratio_final_param_error"],
               f"{_fmt(r['best_param_error'])} ({r['best_step']:.0f})",
               r["final_image_error"], r["ratio_final_image_error"]] for r in rows],
@@ -460,6 +481,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--seeds", type=int, default=None, help="number of seeds (default 3, quick 2)")
     p.add_argument("--only", nargs="+", default=None, help="run only these scenes (oxalis_lite, cbox, glossy_highlight)")
     p.add_argument("--warmup", type=int, default=2, help="unrecorded steps per configuration before the seeds (0: none)")
+    p.add_argument("--target-spp", type=int, default=None, help="samples per pixel of the targets (default: the scene's, 256-512)")
     p.add_argument("--out", default="results/bench_combined")
     a = p.parse_args(argv)
     a.resolution = a.resolution or (32 if a.quick else 64)
@@ -484,14 +506,14 @@ def main(argv: Sequence[str] | None = None) -> None:
             t0 = time.perf_counter()
             for config in configs:
                 if config.expect == "run":
-                    run_configuration(config, 10_000, a.resolution, a.warmup, a.quick, Path(workdir))
+                    run_configuration(config, 10_000, a.resolution, a.warmup, a.quick, Path(workdir), target_spp=a.target_spp)
             print(f"[combined] warm-up ({a.warmup} steps per configuration): {time.perf_counter() - t0:.1f} s", flush=True)
         for seed in range(a.seeds):
             for config in configs:  # interleaved: every configuration once per seed
                 if config.expect == "reject" and seed > 0:
                     continue  # the error does not depend on the seed
                 t0 = time.perf_counter()
-                run = run_configuration(config, seed, a.resolution, a.steps, a.quick, Path(workdir))
+                run = run_configuration(config, seed, a.resolution, a.steps, a.quick, Path(workdir), target_spp=a.target_spp)
                 runs.append(run)
                 what = (f"param RMSE {run['param_error'][0]:.4f} -> {run['final_param_error']:.4f}"
                         if "final_param_error" in run else run.get("error", ""))
