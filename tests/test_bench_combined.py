@@ -137,3 +137,21 @@ def test_time_to_the_baselines_final_error_per_seed():
     rows = {r["config"]: r for r in summarize(runs)["scenes"]["oxalis_lite"]}
     assert rows["ReSTIR"]["time_to_baseline_error"] == pytest.approx(2.25)
     assert "2.25 (2/2 seeds)" in tables(summarize(runs), META)
+
+
+def test_equal_time_gives_every_configuration_the_baselines_wall_time(tmp_path, monkeypatch):
+    from torchir.bench import combined
+
+    calls = []
+
+    def fake(config, seed, resolution, steps, quick, workdir, target_spp=None, max_seconds=None):
+        calls.append((config.name, steps, max_seconds))
+        if config.expect == "reject":
+            return _rejected(config.scene, config.name, "rejected", "construction", "ValueError: no")
+        return _ran(config.scene, config.name, seed, 0.5 if config.baseline else 0.1, 0.1)
+
+    monkeypatch.setattr(combined, "run_configuration", fake)
+    combined.main(["--only", "cbox", "--seeds", "1", "--steps", "4", "--warmup", "0", "--equal-time", "--out", str(tmp_path)])
+    assert calls[0] == ("plain (full render)", 4, None)  # the baseline first, for its step count
+    timed = [c for c in calls[1:] if c[0] in ("uniform pixels 5%", "adaptive pixels 5%")]
+    assert timed and all(steps == 200 and seconds == pytest.approx(4 * 0.5) for _, steps, seconds in timed)

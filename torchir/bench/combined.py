@@ -193,10 +193,15 @@ def _error_text(error: BaseException, limit: int = 240) -> str:
 
 def run_configuration(
     config: Configuration, seed: int, resolution: int, steps: int, quick: bool, workdir: Path, target_spp: int | None = None,
+    max_seconds: float | None = None,
 ) -> dict[str, Any]:
     """Train ``config`` for ``steps`` steps (seed ``seed``) and return its measurements; a
     configuration that raises returns ``status`` ``"rejected"`` (construction failed) or
-    ``"failed"`` (training failed) with the error. ``target_spp`` overrides the scene's."""
+    ``"failed"`` (training failed) with the error. ``target_spp`` overrides the scene's;
+    ``max_seconds`` stops training after that much wall time (Lightning's ``max_time``, from the
+    start of training: the targets are rendered before)."""
+    import datetime
+
     import lightning.pytorch as pl
     import torch
 
@@ -219,6 +224,7 @@ def run_configuration(
     recorder = _recorder()
     trainer = pl.Trainer(
         max_steps=steps if config.expect == "run" else 1,
+        max_time=None if max_seconds is None else datetime.timedelta(seconds=max_seconds),
         logger=False,
         enable_checkpointing=False,
         enable_progress_bar=False,
@@ -384,7 +390,8 @@ def tables(summary: dict[str, Any], meta: dict[str, Any]) -> str:
     """The suite's Markdown: one table per scene (ratios against its plain run) and the table of
     rejected/unsupported combinations with their errors."""
     lines = [
-        (f"### Combined techniques through the trainer ({meta['resolution']}x{meta['resolution']}, {meta['steps']} steps, "
+        (f"### Combined techniques through the trainer ({meta['resolution']}x{meta['resolution']}, {meta['steps']} steps"
+         f"{' for the baselines, their wall time for the others' if meta.get('equal_time') else ''}, "
          f"{meta['seeds']} seed(s), medians over seeds)"),
         "",
         ("Ratios are against the plain run of the same scene (time and error: < 1 is better). Seconds per step: median "
@@ -482,6 +489,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--only", nargs="+", default=None, help="run only these scenes (oxalis_lite, cbox, glossy_highlight)")
     p.add_argument("--warmup", type=int, default=2, help="unrecorded steps per configuration before the seeds (0: none)")
     p.add_argument("--target-spp", type=int, default=None, help="samples per pixel of the targets (default: the scene's, 256-512)")
+    p.add_argument("--equal-time", action="store_true",
+                   help="every configuration trains for the wall time of its scene's baseline run of the same seed (at most 50x the steps)")
     p.add_argument("--out", default="results/bench_combined")
     a = p.parse_args(argv)
     a.resolution = a.resolution or (32 if a.quick else 64)
@@ -509,18 +518,23 @@ def main(argv: Sequence[str] | None = None) -> None:
                     run_configuration(config, 10_000, a.resolution, a.warmup, a.quick, Path(workdir), target_spp=a.target_spp)
             print(f"[combined] warm-up ({a.warmup} steps per configuration): {time.perf_counter() - t0:.1f} s", flush=True)
         for seed in range(a.seeds):
-            for config in configs:  # interleaved: every configuration once per seed
+            budget: dict[str, float] = {}  # scene -> the baseline's training seconds of this seed
+            for config in sorted(configs, key=lambda c: not c.baseline) if a.equal_time else configs:  # interleaved
                 if config.expect == "reject" and seed > 0:
                     continue  # the error does not depend on the seed
                 t0 = time.perf_counter()
-                run = run_configuration(config, seed, a.resolution, a.steps, a.quick, Path(workdir), target_spp=a.target_spp)
+                timed = a.equal_time and not config.baseline and config.scene in budget
+                run = run_configuration(config, seed, a.resolution, 50 * a.steps if timed else a.steps, a.quick, Path(workdir),
+                                        target_spp=a.target_spp, max_seconds=budget[config.scene] if timed else None)
+                if config.baseline and run["status"] == "ran":
+                    budget[config.scene] = run["train_seconds"]
                 runs.append(run)
                 what = (f"param RMSE {run['param_error'][0]:.4f} -> {run['final_param_error']:.4f}"
                         if "final_param_error" in run else run.get("error", ""))
                 print(f"[combined] seed {seed} {config.scene} / {config.name}: {run['status']} "
                       f"({time.perf_counter() - t0:.1f} s) {what}", flush=True)
     summary = summarize(runs)
-    meta = {"resolution": a.resolution, "steps": a.steps, "seeds": a.seeds, "wall_seconds": time.perf_counter() - started}
+    meta = {"resolution": a.resolution, "steps": a.steps, "seeds": a.seeds, "equal_time": a.equal_time, "wall_seconds": time.perf_counter() - started}
     text = tables(summary, meta)
     print("\n" + text, flush=True)
     wall = time.perf_counter() - started
