@@ -1,8 +1,21 @@
-"""Small modules the training tests refer to by class path."""
+"""Small modules the training tests refer to by class path, and shared test checks."""
 from __future__ import annotations
+
+import os
 
 import torch
 from torch import nn
+
+
+def assert_warned_at(record, test_file: str) -> None:
+    """Each warning of ``record`` names ``test_file`` (the caller's line). Under mutmut
+    (``MUTANT_UNDER_TEST`` set) its trampolines add frames between the caller and torchir, so
+    there only a frame outside torchir is asked."""
+    files = [w.filename for w in record]
+    if "MUTANT_UNDER_TEST" in os.environ:
+        assert files and all(os.path.join("torchir", "modules") not in f for f in files), files
+    else:
+        assert files == [test_file], [(w.filename, w.lineno) for w in record]
 
 
 class NaNAfterLoss(nn.Module):

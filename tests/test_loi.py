@@ -17,7 +17,9 @@ from torchir.modules import (
     multiscale_l1_loss,
     multiscale_l2_loss,
 )
-from torchir.modules._blur import blur, blur_adjoint, gaussian_matrix
+from torchir.modules._blur import MIN_SCALE, blur, blur_adjoint, cell_means, gaussian_matrix
+
+from .helpers import assert_warned_at
 
 D64 = torch.float64
 
@@ -33,6 +35,10 @@ def _disk(cx: torch.Tensor, n: int = 64, r: float = 4.0, value: float = 0.8, cy:
     yy, xx = torch.meshgrid(torch.arange(n, dtype=D64) + 0.5, torch.arange(n, dtype=D64) + 0.5, indexing="ij")
     d = ((xx - cx) ** 2 + (yy - cy) ** 2).sqrt()
     return (value * torch.sigmoid((r - d) * 4.0)).view(1, 1, n, n)
+
+
+def _assert_warned_here(record) -> None:
+    assert_warned_at(record, __file__)
 
 
 # ------------------------------------------------------------------------------------ blur
@@ -58,6 +64,35 @@ def test_blur_matches_kornia_in_the_interior():
 def test_blur_adjoint_is_the_transpose():
     x, g = _rand(1, 1, 9, 6, dtype=D64), _rand(1, 1, 9, 6, seed=1, dtype=D64)
     assert torch.allclose((blur(x, 2.0) * g).sum(), (x * blur_adjoint(g, 2.0)).sum(), rtol=1e-12)
+
+
+def test_blur_matrix_defaults_identity_and_device():
+    """The documented defaults: ``truncate=3`` (zero beyond ``ceil(3 sigma)``), float32 on the
+    CPU; ``sigma < MIN_SCALE`` is the exact identity in the requested dtype; the matrices are
+    built on the requested device (``meta`` stands in for a second device)."""
+    m = gaussian_matrix(12, 1.0)
+    assert m.dtype == torch.float32 and m.device == torch.device("cpu")
+    assert (m[0, :4] > 0).all() and (m[0, 4:] == 0).all()  # radius ceil(3 * 1) = 3
+    for dtype in (torch.float32, D64):
+        eye = gaussian_matrix(5, MIN_SCALE / 2, dtype=dtype)
+        assert eye.dtype == dtype and torch.equal(eye, torch.eye(5, dtype=dtype))
+    for sigma in (0.0, 1.0):
+        assert gaussian_matrix(5, sigma, dtype=D64, device="meta").device.type == "meta"
+
+
+def test_cell_means_are_cell_averages_of_the_blur_rows():
+    """``R`` row ``c`` is the mean of :func:`gaussian_matrix`'s rows in cell ``c`` (the last cell
+    short), ``P`` the 0/1 membership; defaults ``truncate=3``, float32, CPU; any device."""
+    n, s, cell = 12, 1.0, 5
+    g = gaussian_matrix(n, s, 3.0, dtype=D64)
+    expected = torch.stack([g[0:5].mean(0), g[5:10].mean(0), g[10:12].mean(0)])
+    membership = torch.zeros(3, n)
+    membership[0, :5], membership[1, 5:10], membership[2, 10:] = 1, 1, 1
+    r, p = cell_means(n, s, cell)
+    assert r.dtype == p.dtype == torch.float32 and r.device == p.device == torch.device("cpu")
+    torch.testing.assert_close(r.double(), expected, rtol=0, atol=1e-7)
+    assert torch.equal(p, membership)
+    assert all(t.device.type == "meta" for t in cell_means(n, s, cell, device="meta"))
 
 
 # ---------------------------------------------------------------------- histograms (6.1.1, .10)
@@ -446,8 +481,6 @@ def test_bad_options(kwargs, error, match):
 def test_option_boundaries_are_accepted():
     """The closed ends of each range are valid; scales below MIN_SCALE px are 0; the weights
     keep their float64 values; beta = 1/128 is not yet "small"."""
-    from torchir.modules._blur import MIN_SCALE
-
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         m = LOILoss(alphas=(MIN_SCALE / 10, MIN_SCALE, 1), sigmas=(0,), pad_frac=4, truncate=0.5, beta=1 / 128, weights=[[0.1, 0.2, 0.3]])
@@ -536,6 +569,90 @@ def test_baselines_registry_and_values():
         GaussianPyramidLoss(p=3)
     with pytest.raises(ValueError, match="non-finite"):
         MultiScaleL2Loss()(x, torch.full_like(x, float("nan")))
+
+
+def _pyramid_oracle(x, y, levels, p=2, sigma=1.0):
+    """Sum over levels of mean |x_l - y_l|^p, level l + 1 = level l blurred by sigma and
+    subsampled by 2, stopping once a side is below 2 px."""
+    total = 0.0
+    for level in range(levels):
+        if level:
+            if min(x.shape[-2:]) < 2:
+                break
+            x, y = blur(x, sigma)[..., ::2, ::2], blur(y, sigma)[..., ::2, ::2]
+        total = total + (x - y).abs().pow(p).flatten(1).mean(1)
+    return total
+
+
+def test_pyramid_levels_default_depth_and_tiny_images():
+    """``levels=None`` goes down to ~4 px: ``1 + floor(log2(min(H, W) // 4))`` levels (1 below
+    8 px); a level is added while both sides are >= 2 px (a 2 px side still halves), so asking
+    for more levels than fit gives the deepest pyramid; p=1 sums mean absolute differences."""
+    for shape, levels in [((1, 3, 32, 48), 4), ((1, 3, 16, 12), 2), ((1, 3, 7, 9), 1), ((1, 1, 9, 8), 2)]:
+        x, y = _rand(*shape, dtype=D64), _rand(*shape, seed=1, dtype=D64)
+        assert gaussian_pyramid_loss(x, y).item() == pytest.approx(_pyramid_oracle(x, y, levels).item(), rel=1e-12), shape
+        assert gaussian_pyramid_loss(x, y).item() != pytest.approx(_pyramid_oracle(x, y, levels + 1).item(), rel=1e-6), shape
+    x, y = _rand(2, 1, 2, 5, dtype=D64), _rand(2, 1, 2, 5, seed=1, dtype=D64)  # 2 -> 1 px, then stop
+    deepest = gaussian_pyramid_loss(x, y, levels=10, reduction="none")
+    torch.testing.assert_close(deepest, _pyramid_oracle(x, y, 2), rtol=1e-12, atol=0)
+    assert deepest[0].item() != pytest.approx((x - y)[0].square().mean().item(), rel=1e-6)
+    x, y = _rand(1, 1, 8, 8, dtype=D64), _rand(1, 1, 8, 8, seed=1, dtype=D64)  # one channel: not a "side"
+    assert gaussian_pyramid_loss(x, y, levels=2, p=1).item() == pytest.approx(_pyramid_oracle(x, y, 2, p=1).item(), rel=1e-12)
+    assert GaussianPyramidLoss(levels=1, p=1)(x, y).item() == pytest.approx((x - y).abs().mean().item(), rel=1e-12)
+
+
+def test_baseline_transforms_reductions_and_module_twins():
+    """The transform is applied to both images first (``"clamp"``: to [0, 1]); ``"sum"`` sums
+    the per-item values; mixed dtypes are promoted before the blurs; the modules equal their
+    functions, defaults included (pyramid sigma 1, truncate 3)."""
+    x, y = _rand(2, 3, 12, 10, lo=-0.5, hi=2.0, dtype=D64), _rand(2, 3, 12, 10, seed=1, lo=-0.5, hi=2.0, dtype=D64)
+    tau = {"identity": lambda t: t, "clamp": lambda t: t.clamp(0, 1), "reinhard": lambda t: t / (1 + t.abs()), torch.sqrt: lambda t: t.sqrt()}
+    for transform, f in tau.items():
+        a, b = (x.abs(), y.abs()) if transform is torch.sqrt else (x, y)
+        for fn, module in [(gaussian_pyramid_loss, GaussianPyramidLoss), (multiscale_l1_loss, MultiScaleL1Loss), (multiscale_l2_loss, MultiScaleL2Loss)]:
+            plain = fn(f(a), f(b)).item()
+            assert fn(a, b, transform=transform).item() == pytest.approx(plain, rel=1e-12), (fn, transform)
+            assert module(transform=transform)(a, b).item() == pytest.approx(plain, rel=1e-12), (module, transform)
+    assert gaussian_pyramid_loss(x, y, transform="clamp").item() != pytest.approx(gaussian_pyramid_loss(x, y).item(), rel=1e-6)
+    kw = dict(sigmas=(0, 1), truncate=1.0)
+    for fn, module, p in [(multiscale_l1_loss, MultiScaleL1Loss, 1), (multiscale_l2_loss, MultiScaleL2Loss, 2)]:
+        per = fn(x, y, reduction="none", **kw)
+        oracle = sum((blur(x, s, 1.0) - blur(y, s, 1.0)).abs().pow(p).flatten(1).mean(1) for s in (0, 1))
+        torch.testing.assert_close(per, oracle, rtol=1e-12, atol=0)
+        assert fn(x, y, reduction="sum", **kw).item() == pytest.approx(per.sum().item(), rel=1e-12)
+        assert module(reduction="sum", **kw)(x, y).item() == pytest.approx(per.sum().item(), rel=1e-12)
+        assert module()(x, y).item() == pytest.approx(fn(x, y, truncate=3.0).item(), rel=1e-12)
+        assert module()(x, y).item() != pytest.approx(fn(x, y, truncate=4.0).item(), rel=1e-6)
+    per = gaussian_pyramid_loss(x, y, levels=2, reduction="none")
+    assert gaussian_pyramid_loss(x, y, levels=2, reduction="sum").item() == pytest.approx(per.sum().item(), rel=1e-12)
+    assert GaussianPyramidLoss(levels=2, reduction="sum")(x, y).item() == pytest.approx(per.sum().item(), rel=1e-12)
+    assert GaussianPyramidLoss(levels=2)(x, y).item() == pytest.approx(_pyramid_oracle(x, y, 2).mean().item(), rel=1e-12)
+    assert GaussianPyramidLoss()(x, y).item() == pytest.approx(gaussian_pyramid_loss(x, y, sigma=1.0).item(), rel=1e-12)
+    assert GaussianPyramidLoss(sigma=2.0)(x, y).item() != pytest.approx(GaussianPyramidLoss()(x, y).item(), rel=1e-6)
+    for fn in (gaussian_pyramid_loss, multiscale_l1_loss, multiscale_l2_loss):
+        for a, b in ((x.float(), y), (x, y.float())):  # both promoted to float64 before anything else
+            mixed = fn(a, b)
+            assert mixed.dtype == D64 and mixed.item() == pytest.approx(fn(a.double(), b.double()).item(), rel=1e-12)
+
+
+def test_baseline_argument_errors():
+    x = _rand(1, 3, 8, 8)
+    cases = [
+        (lambda: gaussian_pyramid_loss(x, x, reduction="avg"), ValueError, r"^reduction must be one of \('mean', 'sum', 'none'\), got 'avg'$"),
+        (lambda: multiscale_l1_loss(x, x[..., :7]), ValueError, r"^rendered and target shapes differ: \(1, 3, 8, 8\) vs \(1, 3, 8, 7\)$"),
+        (lambda: multiscale_l2_loss(x.numpy(), x), TypeError, "^rendered must be a torch.Tensor, got ndarray$"),
+        (lambda: gaussian_pyramid_loss(x, x.numpy()), TypeError, "^target must be a torch.Tensor, got ndarray$"),
+        (lambda: gaussian_pyramid_loss(x, x, transform="gamma"), ValueError, r"^transform must be one of \['clamp', 'identity', 'log1p', 'reinhard'\] or a callable, got 'gamma'$"),
+        (lambda: gaussian_pyramid_loss(x, x, levels=0), ValueError, "^levels must be an int >= 1, got 0$"),
+        (lambda: gaussian_pyramid_loss(x, x, levels=True), ValueError, "^levels must be an int >= 1, got True$"),
+        (lambda: gaussian_pyramid_loss(x, x, levels=2.0), ValueError, r"^levels must be an int >= 1, got 2.0$"),
+        (lambda: gaussian_pyramid_loss(x, x, p=1.5), ValueError, "^p must be 1 or 2, got 1.5$"),
+        (lambda: multiscale_l1_loss(x, x, sigmas=(1, -1)), ValueError, r"^sigmas must be finite and >= 0, got \(1.0, -1.0\)$"),
+        (lambda: MultiScaleL2Loss(sigmas=(-1,)), ValueError, r"^sigmas must be finite and >= 0, got \(-1.0,\)$"),
+    ]
+    for call, error, match in cases:
+        with pytest.raises(error, match=match):
+            call()
 
 
 # ---------------------------------------------------------------------- Mitsuba smoke (6.1.14)
@@ -710,8 +827,6 @@ def test_mask_per_batch_item():
 def test_truncate_reaches_every_blur(cell_fraction):
     """With a short kernel (``truncate=1``) value and gradient equal plain autograd through
     E1-E7 built from the same truncated blurs (cells: their exact means, float32 included)."""
-    from torchir.modules._blur import cell_means
-
     x = _rand(1, 2, 12, 11, lo=0.05, hi=0.95, dtype=D64).requires_grad_()
     y = _rand(1, 2, 12, 11, seed=1, lo=0.05, hi=0.95, dtype=D64)
     s, a, beta, tr = 1.5, 2.0, 0.25, 1.0
@@ -788,3 +903,26 @@ def test_out_of_range_warning_threshold_and_message():
         warnings.simplefilter("error")
         m(far, far)
         m.terms(far, far)
+
+
+def test_warnings_point_at_the_callers_line():
+    """Every LOI warning names the user's call site (this file), whether it comes from the
+    function, the module's ``__call__`` (through torch's ``nn.Module``), ``terms``, ``preset``
+    or the constructor, not a line inside torchir or torch."""
+    inside, far = torch.full((1, 1, 4, 4), 0.5), torch.full((1, 1, 4, 4), 3.0)
+    kw = dict(alphas=(0,), sigmas=(0,))
+    big = LOILoss(**kw)
+    big.memory_estimate = lambda shape, dtype: 2**32  # noqa: E731
+    calls = [
+        ("beyond value_range", lambda: loi_loss(inside, far, **kw)),
+        ("beyond value_range", lambda: LOILoss(**kw)(inside, far)),
+        ("beyond value_range", lambda: LOILoss(**kw).terms(far, inside)),
+        ("consider low_memory=True", lambda: big(inside, inside)),
+        ("beta=0.001", lambda: LOILoss(beta=0.001)),
+        ("beta=0.001", lambda: LOILoss.preset("disks", beta=0.001)),
+        ("beta=0.001", lambda: loi_loss(inside, inside, beta=0.001, **kw)),
+    ]
+    for match, call in calls:
+        with pytest.warns(UserWarning, match=match) as record:
+            call()
+        _assert_warned_here(record)

@@ -102,3 +102,18 @@ def test_bad_arguments():
     for eps in (0.0, -1.0):
         with pytest.raises(ValueError, match=f"^eps must be > 0, got {eps}$"):
             RelativeL2Loss(eps)
+
+
+def test_relative_l2_gradients_match_its_docstring():
+    """gradcheck of both inputs: ``rendered``'s gradient is the true derivative; ``target``
+    does get a gradient (the docstring must not say it gets none), but only through the
+    difference, so it is not the derivative of the formula in ``target``."""
+    r, t = _pair((1, 2, 3, 3), seed=1)
+    r, t = r.requires_grad_(), (t + 0.5).requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: relative_l2_loss(x, t.detach(), 0.1), (r,))
+    assert not torch.autograd.gradcheck(lambda y: relative_l2_loss(r.detach(), y, 0.1), (t,), raise_exception=False)
+    gr, gt = torch.autograd.grad(relative_l2_loss(r, t, 0.1), (r, t))
+    assert torch.count_nonzero(gt) == gt.numel()
+    torch.testing.assert_close(gt, -gr, rtol=1e-12, atol=0)
+    doc = " ".join(relative_l2_loss.__doc__.split())
+    assert "no gradient flows" not in doc and "only through the difference" in doc

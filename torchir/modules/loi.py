@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ._blur import MIN_SCALE, blur, blur_adjoint, cell_means
+from ._warnings import user_stacklevel
 
 __all__ = ["loi_loss", "LOILoss", "LOI_PRESETS", "TRANSFORMS"]
 
@@ -38,6 +39,15 @@ _CHANNELS = ("independent", "luminance")
 _LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709, linear RGB
 _SMALL_BETA = 1.0 / 128  # below: many bins, gradient only within 3 beta of each value (spec 5.5)
 _OUT_OF_RANGE_FRACTION = 0.01  # warn when more pixels than this lie beyond k_hi + 3 beta
+
+
+_SQRT_HALF = math.sqrt(0.5)
+
+
+def _phi_cdf(u: torch.Tensor) -> torch.Tensor:
+    """``Phi(u)`` through ``erfc``, which torch vectorises (``torch.special.ndtr`` does not:
+    measured 6 ms against 29 ms for 3M values on one thread; equal to ~1 ulp)."""
+    return torch.erfc(u * -_SQRT_HALF).mul_(0.5)
 
 
 def _reinhard(x: torch.Tensor) -> torch.Tensor:
@@ -126,7 +136,7 @@ def _config(
         warnings.warn(
             f"beta={beta:g} < 1/128: many bins (memory grows with 1/beta) and a pixel only gets a "
             f"gradient where the histograms differ within ~3 beta of its own value",
-            stacklevel=3,
+            stacklevel=user_stacklevel(),
         )
     lo, hi = (float(v) for v in value_range)
     if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
@@ -236,7 +246,7 @@ def _warn_out_of_range(name: str, j: torch.Tensor, cfg: _Config, warned: set[str
             f"LOI loss: {100 * outside:.1f}% of {name}'s values lie beyond value_range {cfg.value_range} "
             f"+- 3 beta, where histograms saturate and differences become invisible; use "
             f"transform='reinhard' (HDR renders) or a wider value_range",
-            stacklevel=4,
+            stacklevel=user_stacklevel(),
         )
 
 
@@ -267,7 +277,7 @@ def _edges(cfg: _Config, dtype: torch.dtype, device: torch.device) -> torch.Tens
 
 def _point_cdf(j_sigma: torch.Tensor, edges: torch.Tensor, beta: float) -> torch.Tensor:
     """E4/E6 before the aperture: ``Phi((e_j - J_sigma(x)) / beta)``, ``(B, C, K, H, W)``."""
-    return torch.special.ndtr((edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)) / beta)
+    return _phi_cdf((edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)) / beta)
 
 
 def _pixel_weights(b: int, h: int, w: int, m: int, mask: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
@@ -369,7 +379,7 @@ class _SigmaTerm(torch.autograd.Function):
     @staticmethod
     def _difference(j_sigma, z_target, edges, beta):
         u = (edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)).div_(beta)
-        return u, torch.special.ndtr(u).sub_(z_target)  # E11
+        return u, _phi_cdf(u).sub_(z_target)  # E11
 
     @staticmethod
     def forward(ctx, j_sigma, z_target, edges, beta, trim, terms, pw, truncate, low_memory):  # noqa: D102
@@ -665,7 +675,7 @@ class LOILoss(nn.Module):
         est = self.memory_estimate(p.shape, p.rendered.dtype)
         if est > 2**31 and not self.cfg.low_memory and not self._memory_warned:
             self._memory_warned = True
-            warnings.warn(f"LOI loss needs ~{est / 2**30:.1f} GiB for autograd at {p.shape}: consider low_memory=True", stacklevel=3)
+            warnings.warn(f"LOI loss needs ~{est / 2**30:.1f} GiB for autograd at {p.shape}: consider low_memory=True", stacklevel=user_stacklevel())
 
     def forward(self, rendered: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         p = _prepare(rendered, target, mask, self.cfg, self._warned)

@@ -40,7 +40,11 @@ def l2_loss(rendered: torch.Tensor, target: torch.Tensor, reduction: str = "mean
 
 
 def relative_l2_loss(rendered: torch.Tensor, target: torch.Tensor, eps: float = 1e-2, reduction: str = "mean") -> torch.Tensor:
-    """``(rendered - target)^2 / (target^2 + eps)``, reduced; no gradient flows to ``target``."""
+    """``(rendered - target)^2 / (target^2 + eps)``, reduced.
+
+    The weight ``1 / (target^2 + eps)`` is a constant (``target`` detached there), so
+    ``rendered`` gets the exact gradient and ``target`` gets one only through the difference:
+    minus ``rendered``'s, not the derivative of the formula in ``target``."""
     _check(rendered, target, reduction)
     return _reduce((rendered - target).square() / (target.detach().square() + eps), reduction)
 

@@ -30,6 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ._warnings import user_stacklevel
+
 __all__ = ["TargetAwareDenoiser", "target_aware_denoise", "target_aware_denoise_reference"]
 
 _IMPLS = ("auto", "taps", "cached")
@@ -261,7 +263,7 @@ def check_pair(noisy: torch.Tensor, target: torch.Tensor, check_finite: bool) ->
             f"(C,H,W) and a target batch of 1 or {y.shape[0]}"
         )
     if t.requires_grad:
-        warnings.warn("target requires grad: the denoiser treats it as a constant; no gradient flows to it", stacklevel=3)
+        warnings.warn("target requires grad: the denoiser treats it as a constant; no gradient flows to it", stacklevel=user_stacklevel())
         t = t.detach()
     if check_finite:
         _check_finite("target", t)
@@ -300,7 +302,7 @@ def _log_target(t: torch.Tensor, weight_mode: str) -> torch.Tensor:
     if bool((t <= -1).any()):
         raise ValueError("target has values <= -1: the weights use log(1 + I), which is undefined there")
     if bool((t < 0).any()):
-        warnings.warn("target has negative values: the weights clamp them at 0 (log(1 + max(I, 0)))", stacklevel=4)
+        warnings.warn("target has negative values: the weights clamp them at 0 (log(1 + max(I, 0)))", stacklevel=user_stacklevel())
     if weight_mode == "rgb" and t.shape[1] >= 3:
         t = t[:, :3]
     return torch.log1p(t.clamp_min(0))
