@@ -108,6 +108,22 @@ def test_resume_reproduces_the_uninterrupted_run(tmp_path):
     assert any(not torch.allclose(broken[k], uninterrupted[k], rtol=1e-5, atol=1e-6) for k in uninterrupted)
 
 
+def test_lr_half_life_decays_every_rate_per_step_and_survives_a_resume(tmp_path):
+    common = ["--checkpoint.every_n_train_steps", "2", "--model.spp", "1", "--model.lr_half_life", "2"]
+    assert _fit(tmp_path / "a", "--trainer.max_steps", "4", *common) == 0
+    full = _run_dir(tmp_path / "a") / "checkpoints"
+    state = torch.load(full / "last.ckpt", map_location="cpu", weights_only=False)
+    base = state["hyper_parameters"]["lr"]
+    rates = [g["lr"] for g in state["optimizer_states"][0]["param_groups"]]
+    assert rates == pytest.approx([base * 0.5 ** (4 / 2)] * len(rates), rel=1e-12)  # halved every 2 steps
+    assert _fit(tmp_path / "b", "--trainer.max_steps", "4", *common, "--ckpt_path", str(full / "epoch=1-step=2.ckpt")) == 0
+    resumed = torch.load(_run_dir(tmp_path / "b") / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert [g["lr"] for g in resumed["optimizer_states"][0]["param_groups"]] == pytest.approx(rates, rel=1e-12)
+    for bad in (0, -3, 1.5, True):
+        with pytest.raises(ValueError, match=rf"^model.lr_half_life must be a number of steps >= 1 \(or null\), got {bad!r}$"):
+            InverseRenderingModule(scene="cbox", resolution=8, lr_half_life=bad)
+
+
 @pytest.mark.parametrize(
     ("override", "message"),
     [

@@ -68,6 +68,10 @@ class InverseRenderingModule(pl.LightningModule):
         seed: base seed; step ``t`` renders view ``v`` with a seed derived from (seed, t, v) only,
             so runs, resumed runs and multi-process runs see the same random numbers.
         lr: learning rate (per-parameter ``lr`` overrides it).
+        lr_half_life: steps over which every learning rate halves (decayed each step), or
+            ``None`` for constant rates. With a constant rate the error stops falling at a
+            level set by the gradient noise (measured: a 5% pixel budget at 512^2 levels off at
+            1.4-2.2x the full image's error); a decay lowers that floor over the run.
         optimizer: ``adam`` (default) or ``sgd``.
         preview_spp: samples per pixel of the images written for people (initial/current/final).
     """
@@ -87,6 +91,7 @@ class InverseRenderingModule(pl.LightningModule):
         spp_grad: Optional[int] = None,
         seed: int = 0,
         lr: float = 0.05,
+        lr_half_life: Optional[int] = None,
         optimizer: Literal["adam", "sgd"] = "adam",
         preview_spp: int = 64,
     ) -> None:
@@ -98,6 +103,8 @@ class InverseRenderingModule(pl.LightningModule):
                 raise ValueError(f"model.{name} must be >= 1, got {value}")
         if lr <= 0:
             raise ValueError(f"model.lr must be > 0, got {lr}")
+        if lr_half_life is not None and (isinstance(lr_half_life, bool) or not isinstance(lr_half_life, int) or lr_half_life < 1):
+            raise ValueError(f"model.lr_half_life must be a number of steps >= 1 (or null), got {lr_half_life!r}")
         self.scene = _load_scene(scene, resolution, dict(scene_options or {}), integrator)
         for label, spec in (derived or {}).items():
             declare_derived(self.scene, label, spec)
@@ -129,7 +136,7 @@ class InverseRenderingModule(pl.LightningModule):
             derived = self.scene.derived
             _check_sampler(self.scene, self.sampler, frozenset(derived[k].target if k in derived else k for k in self.keys))
         self.spp, self.spp_grad, self.seed, self.lr = spp, spp if spp_grad is None else spp_grad, seed, lr
-        self.optimizer_name, self.preview_spp = optimizer, preview_spp
+        self.optimizer_name, self.preview_spp, self.lr_half_life = optimizer, preview_spp, lr_half_life
         self.nonfinite: Optional[str] = None  # set when a non-finite loss stopped the run
         self.step_metrics: dict[str, float] = {}  # the last step's scalars (loss, errors, paths, sampler/*)
         self._write_logs_at: Optional[int] = None
@@ -369,14 +376,16 @@ class InverseRenderingModule(pl.LightningModule):
         # trainer.log_dir is a collective under DDP: resolve it here, on every rank, once.
         self._results_dir = Path(self.trainer.log_dir or self.trainer.default_root_dir)
 
-    def configure_optimizers(self) -> torch.optim.Optimizer:
+    def configure_optimizers(self) -> Union[torch.optim.Optimizer, dict[str, Any]]:
         groups = [
             {"params": [p.latent], "lr": self.configs[key].lr or self.lr, "name": key}
             for key, p in zip(self.keys, self.scene_parameters)
         ]
-        if self.optimizer_name == "sgd":
-            return torch.optim.SGD(groups, lr=self.lr)
-        return torch.optim.Adam(groups, lr=self.lr)
+        optimizer = torch.optim.SGD(groups, lr=self.lr) if self.optimizer_name == "sgd" else torch.optim.Adam(groups, lr=self.lr)
+        if self.lr_half_life is None:
+            return optimizer
+        decay = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=0.5 ** (1.0 / self.lr_half_life))
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": decay, "interval": "step"}}
 
     def configure_callbacks(self) -> list[pl.Callback]:
         from .callbacks import NonFiniteLossGuard, ParameterProjection, ResultWriter, StepProgressBar, StepTimer
