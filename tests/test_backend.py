@@ -112,3 +112,37 @@ def test_openmp_waits_passively_unless_the_user_says_otherwise(preset):
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == (preset or "PASSIVE")
+
+
+def test_gc_paused_nests_and_restores_the_collector(cbox):
+    """Dr.Jit traces run with Python's cyclic collector paused (a scene freed mid-trace aborts
+    the process, backend.gc_paused); a render leaves it as it found it, on or off."""
+    import gc
+
+    import torch
+
+    from torchir.functions import render
+
+    assert gc.isenabled()
+    with backend.gc_paused():
+        assert not gc.isenabled()
+        with backend.gc_paused():
+            assert not gc.isenabled()
+        assert not gc.isenabled()
+    assert gc.isenabled()
+    seen = []
+    with pytest.raises(RuntimeError, match="inside"):
+        with backend.gc_paused():
+            seen.append(gc.isenabled())
+            raise RuntimeError("inside")
+    assert seen == [False] and gc.isenabled()
+    red = cbox.get("red.reflectance.value").requires_grad_()
+    render(cbox, {"red.reflectance.value": red}, spp=1, seed=0).sum().backward()
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        render(cbox, {"red.reflectance.value": red}, spp=1, seed=1).sum().backward()
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+    assert torch.isfinite(red.grad).all()

@@ -12,7 +12,10 @@ Example:
 """
 from __future__ import annotations
 
+import gc
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -175,3 +178,25 @@ def drain_kernel_history(stats: KernelStats | None = None) -> KernelStats:
                 stats.compiled += 1
                 stats.hashes.append(str(entry.get("hash", "")))
     return stats
+
+
+@contextmanager
+def gc_paused() -> Iterator[None]:
+    """Pause Python's cyclic garbage collector while Dr.Jit traces or records.
+
+    A Mitsuba scene that the collector frees in the middle of a trace (a frozen function's
+    recording, a symbolic loop) releases its Embree handle through ``jit_enqueue_host_func``,
+    which throws there, inside a C++ destructor: the process aborts (seen in the test suite
+    as a random ``Aborted`` after a few hundred tests: gdb showed ``Scene::~Scene ->
+    EmbreeAccel::release -> jitc_var_free -> jit_enqueue_host_func`` unwinding into
+    ``std::terminate`` from a dict freed by the collector). Scenes in reference cycles (a
+    Lightning module, a closure) are only ever freed by the collector, at whatever allocation
+    triggers it; paused, it runs after the trace. Nesting is fine.
+    """
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()

@@ -15,6 +15,8 @@ from typing import Any
 
 import drjit as dr
 
+from ..backend import gc_paused
+
 
 class BoundRenderOp(dr.CustomOp):
     """Base op: subclasses implement :meth:`primal` and :meth:`adjoint`.
@@ -27,13 +29,18 @@ class BoundRenderOp(dr.CustomOp):
 
     def eval(self, scene, values: dict[str, Any], grad_names: frozenset[str], settings: Any):
         self.scene, self.values, self.grad_names, self.settings = scene, values, grad_names, settings
-        self.fresh = scene.bind(values, grad_names, owner=self)
-        with dr.suspend_grad():
-            return self.primal()
+        with gc_paused():  # a scene freed by the collector mid-trace aborts the process
+            self.fresh = scene.bind(values, grad_names, owner=self)
+            with dr.suspend_grad():
+                return self.primal()
 
     def backward(self) -> None:
         if not self.grad_names:
             return
+        with gc_paused():
+            self._backward()
+
+    def _backward(self) -> None:
         if not self.scene.owns_live_binding(self):
             self.fresh = self.scene.bind(self.values, self.grad_names, owner=self)
         self.scene.release(self)  # the traversal below consumes the AD edges

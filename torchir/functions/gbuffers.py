@@ -8,6 +8,7 @@ import mitsuba as mi
 import torch
 
 from .. import backend
+from ..backend import gc_paused
 from ..scene import Scene
 from . import _args
 
@@ -62,7 +63,7 @@ def render_gbuffers(
     seed = _args.check_seed("seed", seed)
     sensor_obj = scene.sensor(sensor)
     values, _ = _args.split_params(scene, params)
-    with torch.no_grad(), dr.suspend_grad():
+    with torch.no_grad(), dr.suspend_grad(), gc_paused():
         native = {name: scene.to_drjit(name, mi.TensorXf(t.detach().contiguous())) for name, t in values.items()}
         scene.bind(native)
         image = _aov_integrator().render(scene.mi_scene, sensor_obj, seed=seed, spp=spp, develop=True)

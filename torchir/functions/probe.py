@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from .. import backend
+from ..backend import gc_paused
 from ..scene import Scene
 from . import _args
 from .render_pixels import _check_integrator, _pixel_passes
@@ -64,9 +65,10 @@ def _to_drjit(scene: Scene, name: str, value: torch.Tensor):
 
 def _one_path(scene: Scene, values: dict[str, torch.Tensor], lanes: tuple, sensor: int, seed: int) -> mi.Color3f:
     """Radiance (times the camera ray weight) of one path per lane, with ``values`` bound."""
-    scene.bind({name: _to_drjit(scene, name, v) for name, v in values.items()})
-    result = _pixel_passes(scene).one_path(sensor, lanes, seed)  # frozen like render_pixels
-    dr.eval(result)
+    with gc_paused():
+        scene.bind({name: _to_drjit(scene, name, v) for name, v in values.items()})
+        result = _pixel_passes(scene).one_path(sensor, lanes, seed)  # frozen like render_pixels
+        dr.eval(result)
     return result
 
 
