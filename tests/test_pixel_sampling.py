@@ -15,7 +15,7 @@ import torchir
 from torchir.functions import render
 from torchir.functions.probe import probe_pixels
 from torchir.modules import L2Loss
-from torchir.samplers import AdaptivePixelSampler, LossPixelSampler, UniformPixelSampler, sampled_loss
+from torchir.samplers import AdaptivePixelSampler, LossPixelSampler, PixelBatch, UniformPixelSampler, sampled_loss
 
 from .conftest import RES
 
@@ -229,3 +229,249 @@ def test_probe_records_once_across_refreshes():
     for step in range(12):
         probe_pixels(scene, {KEY: torch.full((3,), 0.5)}, [(RES, RES)], passes=2, seed=100 + step)
     assert _pixel_passes(scene)._one_path.n_recordings == 1
+
+
+# ------------------------------------------- Stage 1 and the sampled loss, renderer faked (issue 19)
+class _FakeScene:
+    """The scene attributes the samplers and ``sampled_loss`` read; the renderer is faked."""
+
+    def __init__(self, resolution, views):
+        self.resolution, self.sensor_count = resolution, views
+
+    def sensor_resolution(self, view):
+        return self.resolution
+
+
+def _fake_probe(calls):
+    """A stand-in for probe_pixels: radiance and derivative passes that depend only on
+    (sensor, level), recording each call's arguments."""
+
+    def probe(scene, params, grids, passes=4, seed=0, sensor=0, tangents=None, step=1e-2):
+        calls.append(dict(params=params, grids=list(grids), passes=passes, seed=seed, sensor=sensor, tangents=tangents, step=step))
+        radiance, derivative = [], []
+        for d, (h, w) in enumerate(grids):
+            g = torch.Generator().manual_seed(100 * sensor + d)
+            radiance.append(torch.rand(passes, 3, h, w, generator=g))
+            derivative.append(torch.randn(passes, 3, h, w, generator=g))
+        return radiance, (derivative if tangents is not None else None)
+
+    return probe
+
+
+def _stage1_maps(calls, targets, views, count):
+    """Independently: p1 ∝ mean_i sum_c (I - area(t))^2 (the L2 adjoint up to a constant per
+    level, which the per-level normalisation cancels) and p2 = mean_i sum_c t^2, per level."""
+    probe = _fake_probe([])
+    grids = calls[0]["grids"]
+    p1 = [torch.zeros(count, h, w, dtype=torch.float64) for h, w in grids]
+    p2 = [torch.zeros(count, h, w, dtype=torch.float64) for h, w in grids]
+    for target, v in zip(targets, views):
+        radiance, derivative = probe(None, None, grids, calls[0]["passes"], sensor=v, tangents={})
+        for d, (h, w) in enumerate(grids):
+            small = F.avg_pool2d(target[None].double(), target.shape[-1] // w)[0]
+            p1[d][v] = (radiance[d].double() - small).square().sum(1).mean(0)
+            p2[d][v] = derivative[d].double().square().sum(1).mean(0)
+    return p1, p2
+
+
+@pytest.mark.parametrize("cls", [AdaptivePixelSampler, LossPixelSampler])
+def test_stage1_pmf_is_built_from_the_probe_moments(monkeypatch, cls):
+    """update() = update_from_maps(p1, p2) of the Stage-1 probes' second moments (E13, E14),
+    each view's maps in its own slot, the probe called once per view with the sampler's
+    passes, finite-difference step, a fresh seed and Rademacher tangents over the float
+    parameters (for the adaptive strategy only)."""
+    import time
+
+    import torchir.functions.probe as probe_module
+
+    calls: list[dict] = []
+    monkeypatch.setattr(probe_module, "probe_pixels", _fake_probe(calls))
+    n = 16
+    options = dict(budget=8, levels=1, min_side=8, stage1_spp=3, fd_step=0.03, alpha=0.2, seed=5)
+    s = cls(_FakeScene((n, n), 2), **options)
+    assert s.stage1_grids == [(8, 8), (4, 4)]
+    targets = torch.rand(2, 3, n, n, generator=torch.Generator().manual_seed(1))
+    params = {"tex": torch.rand(4, 4, 3, requires_grad=True), "count": torch.tensor([2, 3])}
+    started = time.perf_counter()
+    s.update(params, targets, None, step=7)  # default loss: L2
+    elapsed = time.perf_counter() - started
+    adaptive = cls is AdaptivePixelSampler
+    p1, p2 = _stage1_maps(calls, targets, [0, 1], 2)
+    reference = cls(resolution=(n, n), views=2, **options)
+    torch.testing.assert_close(s.pdf, reference.update_from_maps(p1, p2 if adaptive else None).reshape(-1), rtol=1e-5, atol=0)
+    assert [c["sensor"] for c in calls] == [0, 1]
+    for c in calls:
+        assert c["passes"] == 3 and c["step"] == 0.03 and c["grids"] == s.stage1_grids
+        assert set(c["params"]) == {"tex", "count"} and not c["params"]["tex"].requires_grad
+        if adaptive:  # a ±1 direction over the float parameters only
+            assert set(c["tangents"]) == {"tex"} and c["tangents"]["tex"].shape == (4, 4, 3)
+            assert set(c["tangents"]["tex"].unique().tolist()) == {-1.0, 1.0}
+        else:
+            assert c["tangents"] is None
+    d = s.diagnostics()
+    assert d["stage1_paths"] == 2 * 3 * (64 + 16) * (2 if adaptive else 1)
+    assert 0 < d["stage1_seconds"] <= elapsed
+    assert (s.last_update, s.refreshes) == (7, 1) and not s.due(8, params)
+
+    # one view, its target given as a single (C, H, W) image: only that view's maps are set
+    first_seeds = [c["seed"] for c in calls]
+    calls.clear()
+    s.update(params, targets[1], L2Loss(), views=[1], step=9)
+    assert [c["sensor"] for c in calls] == [1] and s.due(10, params) and not s.due(10, params, [1])
+    p1, p2 = _stage1_maps(calls, targets[1:], [1], 2)
+    torch.testing.assert_close(s.pdf, reference.update_from_maps(p1, p2 if adaptive else None).reshape(-1), rtol=1e-5, atol=0)
+    # every refresh draws its probe seeds from the sampler's generator: new ones, in [0, 2^32)
+    seeds = first_seeds + [c["seed"] for c in calls]
+    again: list[dict] = []
+    monkeypatch.setattr(probe_module, "probe_pixels", _fake_probe(again))
+    twin = cls(_FakeScene((n, n), 2), **options)
+    twin.update(params, targets, None, step=7)
+    twin.update(params, targets[1], L2Loss(), views=[1], step=9)
+    twin_seeds = [c["seed"] for c in again]
+    assert twin_seeds == seeds and len(set(seeds)) == 3  # reproducible, and distinct
+    assert all(0 <= x < 2**32 for x in twin_seeds)
+    if adaptive:  # the tangents too come from the sampler's generator
+        assert torch.equal(again[-1]["tangents"]["tex"], calls[-1]["tangents"]["tex"])
+    # a fresh seed per probe: 40 refreshes draw 40 distinct seeds (for seeds uniform in
+    # [0, 2^32 - 1), a repeat has probability 40^2 / 2 / 2^32 < 2e-7)
+    many = cls(_FakeScene((n, n), 1), **options)
+    again.clear()
+    for step in range(40):
+        many.update(params, targets[:1], None, step=step)
+    assert len({c["seed"] for c in again}) == 40
+
+
+def test_stage1_adaptive_without_float_parameters_probes_no_derivative(monkeypatch):
+    import torchir.functions.probe as probe_module
+
+    calls: list[dict] = []
+    monkeypatch.setattr(probe_module, "probe_pixels", _fake_probe(calls))
+    s = AdaptivePixelSampler(_FakeScene((8, 8), 1), budget=4, levels=0, min_side=4, stage1_spp=2)
+    s.update({"count": torch.tensor([1])}, torch.rand(1, 3, 8, 8), step=0)
+    assert calls[0]["tangents"] is None
+    assert s.diagnostics()["stage1_paths"] == 2 * 4 * 4  # one pass per low-res pixel, no probe
+
+
+def test_stage1_uses_the_given_per_pixel_loss(monkeypatch):
+    """L1's adjoint is sign(I - t) / n: its squared sum over the 3 channels is the same at every
+    pixel (no ties here), so the Eq. 5 pmf is uniform; L2's follows (I - t)^2."""
+    import torchir.functions.probe as probe_module
+    from torchir.modules import L1Loss
+
+    calls: list[dict] = []
+    monkeypatch.setattr(probe_module, "probe_pixels", _fake_probe(calls))
+    target = torch.rand(1, 3, 8, 8, generator=torch.Generator().manual_seed(2))
+    options = dict(budget=4, levels=0, min_side=4, sigma=0.0)
+    l1 = LossPixelSampler(_FakeScene((8, 8), 1), **options)
+    l1.update({}, target, L1Loss(), step=0)
+    torch.testing.assert_close(l1.pdf, torch.full((64,), 1 / 64, dtype=torch.float64), rtol=1e-9, atol=0)
+    l2 = LossPixelSampler(_FakeScene((8, 8), 1), **options)
+    l2.update({}, target, L2Loss(), step=0)
+    p1, _ = _stage1_maps(calls, target, [0], 1)
+    expected = LossPixelSampler(resolution=(8, 8), **options).update_from_maps(p1).reshape(-1)
+    torch.testing.assert_close(l2.pdf, expected, rtol=1e-5, atol=0)
+    assert float(expected.max() / expected.min()) > 1.5  # not flat: L1 and L2 differ
+
+
+def test_stage1_argument_errors():
+    from torch import nn
+
+    class Coupled(nn.Module):
+        def forward(self, rendered, target):
+            return (rendered.mean() - target.mean()) ** 2
+
+    class Undeclared(L2Loss):
+        pixelwise = False
+
+    s = AdaptivePixelSampler(_FakeScene((8, 6), 2), budget=4)  # not square: H and W told apart
+    good = torch.rand(2, 3, 8, 6)
+    with pytest.raises(ValueError, match=r"^update needs the target images \(one per view\)$"):
+        s.update({}, None)
+    with pytest.raises(ValueError, match=r"^got 1 target\(s\) for 2 view\(s\)$"):
+        s.update({}, good[:1])
+    with pytest.raises(ValueError, match=r"^got 2 target\(s\) for 1 view\(s\)$"):
+        s.update({}, good, views=[1])
+    with pytest.raises(ValueError, match=r"^targets must be \(C, 8, 6\) images, got \(3, 8, 4\)$"):
+        s.update({}, [good[0], good[1, :, :, :4]])
+    with pytest.raises(ValueError, match=r"^targets must be \(C, 8, 6\) images, got \(1, 3, 8, 6\)$"):
+        s.update({}, [good[:1], good[1]])
+    bad = good.clone()
+    bad[1, 0, 2, 2] = float("inf")
+    with pytest.raises(ValueError, match=r"^targets contain NaN/Inf$"):
+        s.update({}, bad)
+    tail = r"couples pixels \(or does not declare pixelwise = True\): pixel sampling needs a per-pixel loss \(l1, l2, relative_l2\); LOI, pyramid and SSIM losses need full images$"
+    for loss in (Coupled(), Undeclared()):
+        with pytest.raises(ValueError, match=f"^{type(loss).__name__} {tail}"):
+            s.update({}, good, loss)
+    # none of the refreshes above finished: none counts, and Stage 1 is still due at step 0
+    assert s.refreshes == 0 and s.last_update is None and s.due(0, {})
+
+
+def _fake_render(calls, images):
+    def render_pixels(scene, params, index, spp=1, seed=0, sensor=0, spp_grad=None):
+        calls.append(dict(index=index.clone(), spp=spp, seed=seed, sensor=sensor, spp_grad=spp_grad))
+        return params["x"] * images[sensor].flatten(1).t()[index]
+
+    return render_pixels
+
+
+@pytest.mark.parametrize("reduction", ["mean", "sum"])
+def test_sampled_loss_of_every_pixel_is_the_full_loss(monkeypatch, reduction):
+    """A batch holding every pixel once with weight 1/m scores exactly the full-image loss
+    (loss(image) = mean_j l_j), with its gradient; rows come grouped by view in the order of
+    ``views``, raster order within a view, each view rendered once with its own seed."""
+    import torchir.functions as functions
+
+    h, w, m = 4, 6, 2 * 4 * 6
+    g = torch.Generator().manual_seed(3)
+    images, targets = torch.rand(2, 3, h, w, generator=g), torch.rand(2, 3, h, w, generator=g)
+    calls: list[dict] = []
+    monkeypatch.setattr(functions, "render_pixels", _fake_render(calls, images))
+    x = torch.tensor(0.7, requires_grad=True)
+    order = torch.randperm(m, generator=g)
+    weight = torch.rand(m, generator=g) + 0.5
+    batch = PixelBatch(order, torch.full((m,), 1.0 / m))
+    loss = L2Loss(reduction=reduction)
+    scored = sampled_loss(_FakeScene((h, w), 2), {"x": x}, batch, [targets[1], targets[0]], [1, 0], loss, seed=lambda v: 50 + v, spp=3, spp_grad=5)
+    full = loss(x * images, targets)
+    torch.testing.assert_close(scored.loss, full, rtol=1e-5, atol=0)
+    torch.testing.assert_close(torch.autograd.grad(scored.loss, x)[0], torch.autograd.grad(full, x)[0], rtol=1e-5, atol=0)
+    raster = lambda t: torch.cat([t[1].flatten(1).t(), t[0].flatten(1).t()])
+    torch.testing.assert_close(scored.radiance, raster(x * images))
+    torch.testing.assert_close(scored.target, raster(targets))
+    assert [(c["sensor"], c["seed"], c["spp"], c["spp_grad"]) for c in calls] == [(1, 51, 3, 5), (0, 50, 3, 5)]
+    assert all(torch.equal(c["index"], torch.arange(h * w)) for c in calls)
+    # arbitrary weights follow their pixels: loss = sum_n w_n l_n
+    calls.clear()
+    scored = sampled_loss(_FakeScene((h, w), 2), {"x": x}, PixelBatch(order, weight), targets, [0, 1], loss, seed=lambda v: v)
+    terms = (x * images - targets).square().flatten(1).reshape(2, 3, -1).transpose(1, 2).reshape(m, 3)
+    terms = terms.mean(1) if reduction == "mean" else terms.sum(1) * m
+    by_pixel = torch.empty(m)
+    by_pixel[order] = weight
+    torch.testing.assert_close(scored.weight, by_pixel)
+    assert [(c["sensor"], c["seed"], c["spp"], c["spp_grad"]) for c in calls] == [(0, 0, 1, None), (1, 1, 1, None)]  # defaults
+    torch.testing.assert_close(scored.loss, (by_pixel * terms).sum(), rtol=1e-5, atol=0)
+
+
+def test_sampled_loss_skips_views_without_draws(monkeypatch):
+    import torchir.functions as functions
+
+    h, w = 4, 6
+    g = torch.Generator().manual_seed(4)
+    images, targets = torch.rand(3, 3, h, w, generator=g), torch.rand(3, 3, h, w, generator=g)
+    calls: list[dict] = []
+    monkeypatch.setattr(functions, "render_pixels", _fake_render(calls, images))
+    local = torch.tensor([5, 2, 5, 23])
+    batch = PixelBatch(2 * h * w + local, torch.tensor([1.0, 2.0, 3.0, 4.0]))  # all in view 2
+    x = torch.tensor(1.0)
+    scored = sampled_loss(_FakeScene((h, w), 3), {"x": x}, batch, targets, [0, 1, 2], L2Loss(), seed=lambda v: v)
+    assert [c["sensor"] for c in calls] == [2] and calls[0]["index"].tolist() == [2, 5, 5, 23]
+    # raster order: the two draws of pixel 5 (weights 1 and 3) may come in either order
+    assert scored.weight[[0, 3]].tolist() == [2.0, 4.0] and sorted(scored.weight[1:3].tolist()) == [1.0, 3.0]
+    torch.testing.assert_close(scored.target, targets[2].flatten(1).t()[[2, 5, 5, 23]])
+    # a view with a single draw is rendered like any other
+    calls.clear()
+    batch = PixelBatch(torch.tensor([7, 2 * h * w + 3]), torch.tensor([0.5, 0.25]))
+    scored = sampled_loss(_FakeScene((h, w), 3), {"x": x}, batch, targets, [0, 1, 2], L2Loss(), seed=lambda v: v)
+    assert [(c["sensor"], c["index"].tolist()) for c in calls] == [(0, [7]), (2, [3])]
+    assert scored.weight.tolist() == [0.5, 0.25] and scored.radiance.shape == (2, 3)

@@ -345,9 +345,9 @@ class PixelSampler:
             step: the optimiser step (for the refresh schedule).
         """
         params = {} if params is None else {k: v.detach() for k, v in params.items()}
-        self._signature = self._signature_of(params, views)
-        self.last_update, self.refreshes = step, self.refreshes + 1
+        signature = self._signature_of(params, views)
         if not self.uses_stage1:
+            self._signature, self.last_update, self.refreshes = signature, step, self.refreshes + 1
             return
         started = time.perf_counter()
         if self.scene is None:
@@ -373,6 +373,8 @@ class PixelSampler:
                 if p2 is not None and derivative is not None:
                     p2[d][v] = derivative[d].double().square().sum(1).mean(0)  # E13/E14
         self.update_from_maps(p1, p2)
+        # only a refresh that finished counts: one that raised stays due
+        self._signature, self.last_update, self.refreshes = signature, step, self.refreshes + 1
         paths = len(views) * self.stage1_spp * sum(h * w for h, w in grids) * (2 if p2 is not None and probed else 1)
         self._stats.update(stage1_seconds=time.perf_counter() - started, stage1_paths=float(paths))
 
