@@ -75,6 +75,11 @@ class DerivedParameter:
 _GEOMETRY_KEYS = frozenset({"vertex_positions", "to_world", "center", "radius"})
 
 
+def is_geometry_key(name: str) -> bool:
+    """Whether Mitsuba key ``name`` moves geometry (``<shape>.vertex_positions``, ``.to_world``, ...)."""
+    return name.rsplit(".", 1)[-1] in _GEOMETRY_KEYS
+
+
 def _is_vector_array(value: Any) -> bool:
     """A dynamic Dr.Jit array of fixed-size float vectors (Color3f, Point3f, Vector2f, ...)."""
     return (
@@ -432,7 +437,7 @@ class Scene:
             if not bool(torch.isfinite(tensor.detach()).all()):
                 bad = int((~torch.isfinite(tensor.detach())).sum())
                 raise ValueError(f"params[{name!r}] has {bad} NaN/Inf entries")
-            if tensor.requires_grad and info.discontinuous and name.rsplit(".", 1)[-1] in _GEOMETRY_KEYS:
+            if tensor.requires_grad and info.discontinuous and is_geometry_key(name):
                 self._warn_discontinuous(name)
 
     def _detaches(self, name: str) -> bool:

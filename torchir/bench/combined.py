@@ -330,7 +330,7 @@ def _time_to_baseline_error(runs: list[dict[str, Any]], scene: str, config: str,
     parameter error (same seed), as a fraction of the baseline's training time; NaN if never."""
     out = []
     for run in runs:
-        if run["scene"] != scene or run["config"] != config or run["status"] not in ("ran",):
+        if run["scene"] != scene or run["config"] != config or run["status"] != "ran":
             continue
         base = next((b for b in runs if b["scene"] == scene and b["config"] == baseline and b["seed"] == run["seed"] and b["status"] == "ran"), None)
         if base is None:

@@ -16,7 +16,7 @@ from typing import Any, Protocol, runtime_checkable
 import drjit as dr
 import mitsuba as mi
 
-from ..scene import _GEOMETRY_KEYS
+from ..scene import is_geometry_key
 from ._bound_op import BoundRenderOp
 
 
@@ -55,7 +55,7 @@ class SamplerRenderOp(BoundRenderOp):
 
     def adjoint(self, grad_out: mi.TensorXf) -> None:
         s, r = self.settings, self.sampler
-        geometry = any(name.rsplit(".", 1)[-1] in _GEOMETRY_KEYS for name in self.grad_names)
+        geometry = any(is_geometry_key(name) for name in self.grad_names)
         r.integrator.backward(
             self.scene.mi_scene, self.cache, grad_out, r.render_seed(s.seed_grad), s.spp_grad,
             geometry=geometry, params=self.fresh,

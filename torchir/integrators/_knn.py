@@ -14,6 +14,7 @@ Both return ``(index, ok)``: lists of ``k`` ``UInt32``/``Bool`` arrays of the qu
 from __future__ import annotations
 
 import math
+import time
 
 import drjit as dr
 import mitsuba as mi
@@ -197,8 +198,6 @@ class NeighbourSearch:
             self.chosen = "grid"
         if self.chosen is not None:
             return knn(points, queries, k, radius, self.chosen, exclude_self)
-        import time
-
         backend = ("kdtree", "grid")[self._calls % 2]
         self._calls += 1
         dr.eval(points, queries)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import copy
 from typing import Any
 
-from ..scene import Scene
+from ..scene import Scene, is_geometry_key
 
 __all__ = ["ReSTIRSampler"]
 
@@ -120,8 +120,6 @@ class ReSTIRSampler:
 
     def check_gradients(self, grad_names) -> None:
         """Refuse light-placement parameters; warn once about shape parameters (stage v2)."""
-        from ..scene import _GEOMETRY_KEYS
-
         # ReSTIR differentiates the path contribution of the reservoirs' light samples, which are
         # not rebuilt when a light moves: light placement gets no gradient (it failed inside Dr.Jit).
         emitters = {e.id() for e in self.scene.mi_scene.emitters()}
@@ -132,7 +130,7 @@ class ReSTIRSampler:
                     f"ReSTIR gives no gradient for the light parameter {name!r} (light samples are reused, not "
                     f"re-sampled, when a light moves): optimise it without sampler=, e.g. with the scene's own integrator"
                 )
-        if any(name.rsplit(".", 1)[-1] in _GEOMETRY_KEYS for name in grad_names):
+        if any(is_geometry_key(name) for name in grad_names):
             self.scene.warn_once(
                 "restir-geometry",
                 "ReSTIR with shape parameters (stage v2): interior term with reuse (ray-following shading "

@@ -235,8 +235,7 @@ class InverseRenderingModule(pl.LightningModule):
 
     def _loggers_write(self) -> bool:
         """Whether the loggers write this step's metrics (``trainer.log_every_n_steps``, the rule
-        of Lightning's logger connector). Loss, image and parameter error are logged every step
-        (progress bar, curves); the diagnostics only the logs show, only on these steps."""
+        of Lightning's logger connector); :meth:`_record_step` logs only on these steps."""
         trainer = self._trainer
         if trainer is None:
             return True
@@ -335,10 +334,10 @@ class InverseRenderingModule(pl.LightningModule):
         self._write_logs_at = self.global_step if self._loggers_write() else None
         distributed = self.trainer.world_size > 1
         self.log("loss", loss, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True, logger=distributed)
-        if not distributed:
+        if not distributed or self._write_logs_at is None:
             return
-        for name, value in metrics.items():
-            if name == "loss" or (self._write_logs_at is None and name not in ("image_error", "param_error")):
+        for name, value in metrics.items():  # every rank decides alike: the reductions stay matched
+            if name == "loss":
                 continue
             reduce = "sum" if name == "paths_per_step" else "mean"
             self.log(name, value, on_step=True, on_epoch=False, batch_size=batch_size, reduce_fx=reduce, sync_dist=not name.startswith("sampler/"))
