@@ -17,7 +17,7 @@ import torch
 import torchir
 from torchir.functions import render
 from torchir.samplers import SAMPLERS, ReSTIRSampler
-from torchir.integrators._knn import NeighbourSearch, knn_grid, knn_kdtree
+from torchir.integrators._knn import NeighbourSearch, ScreenLayout, knn_grid, knn_kdtree, knn_screen
 
 RES = 24
 KEY = "canvas.bsdf.reflectance.data"
@@ -93,28 +93,45 @@ def test_ris_m1_mean_matches_mitsuba_direct(oxalis):
 
 
 # ---------------------------------------------------------------------------------- T-U2
-def test_ris_images_unbiased(oxalis, reference):
+@pytest.mark.parametrize("target", ["shadowed", "unshadowed"])
+def test_ris_images_unbiased(oxalis, reference, target):
+    """Image mean, 4x4-pixel block means, and (shadowed) pixels within 4 standard errors.
+
+    The unshadowed target has heavy per-pixel tails (in the leaf's shadow most selections
+    pick the occluded spot and give 0, a rare dim-light pick gives a large value), so 16
+    samples underestimate a pixel's variance: 1.8 % of its pixels sit beyond 4 se even at 128
+    samples, all on the low side, while its dim-region mean matched the reference to 0.03 %
+    (+- 0.19 %, 32 x 256 spp). Block means of 16 pixels have no such tails."""
     ref, ref_se, ref_mean_se = reference
-    r = ReSTIRSampler(oxalis, preset="b2", candidates=4)
+    r = ReSTIRSampler(oxalis, preset="b2", candidates=4, target=target)
     samples = np.stack([render(oxalis, {}, spp=4, seed=s, sampler=r).numpy() for s in range(16)])
     ratio, se = _mean_ratio_and_se(samples, ref)
     # Image means, not pixels: the error of the ratio is that of two independent means.
     assert se < 0.02  # power: a 10 % bias is > 4 standard errors away
     assert abs(ratio - 1) < 4 * math.hypot(se, ref_mean_se)
-    se_px = np.sqrt(samples.var(0, ddof=1) / len(samples) + ref_se**2)
-    lit = se_px > 0
-    z = np.abs(samples.mean(0) - ref)[lit] / se_px[lit]
-    assert (z > 4).mean() < 0.01
+    blocks = samples.reshape(16, 3, RES // 4, 4, RES // 4, 4).mean((3, 5))
+    ref_blocks = ref.reshape(3, RES // 4, 4, RES // 4, 4).mean((2, 4))
+    ref_blocks_se = np.sqrt((ref_se**2).reshape(3, RES // 4, 4, RES // 4, 4).sum((2, 4))) / 16
+    se_b = np.sqrt(blocks.var(0, ddof=1) / 16 + ref_blocks_se**2)
+    lit_b = se_b > 0
+    assert (np.abs(blocks.mean(0) - ref_blocks)[lit_b] / se_b[lit_b] > 4).sum() == 0
+    if target == "shadowed":
+        se_px = np.sqrt(samples.var(0, ddof=1) / len(samples) + ref_se**2)
+        lit = se_px > 0
+        z = np.abs(samples.mean(0) - ref)[lit] / se_px[lit]
+        assert (z > 4).mean() < 0.01
 
 
-@pytest.mark.parametrize("nn_backend", ["kdtree", "grid"])
-def test_reuse_chains_unbiased(oxalis, reference, nn_backend):
+@pytest.mark.parametrize(
+    "nn_backend, target", [("kdtree", "shadowed"), ("grid", "shadowed"), ("screen", "shadowed"), ("screen", "unshadowed")]
+)
+def test_reuse_chains_unbiased(oxalis, reference, nn_backend, target):
     """Chain means of spatiotemporal reuse (12 independent chains, burn-in dropped) match
     the reference within 4 standard errors of the difference of the two image means (chain
     means: 11 degrees of freedom; a 4 se bound has a false-alarm rate < 0.3 % even for a
     t-distribution with that few)."""
     ref, _, ref_mean_se = reference
-    chains = _chains(oxalis, 12, 10, 2, candidates=4, burn_in=4, nn_backend=nn_backend)
+    chains = _chains(oxalis, 12, 10, 2, candidates=4, burn_in=4, nn_backend=nn_backend, target=target)
     assert np.isfinite(chains).all()
     ratio, se = _mean_ratio_and_se(chains, ref)
     bound = 4 * math.hypot(se, ref_mean_se)
@@ -156,7 +173,8 @@ def test_ris_gradient_unbiased(oxalis, prb_gradient):
     assert abs(float(m.sum() - ref.sum())) < 4 * math.hypot(sum_se, float(ref_se.norm()))
 
 
-def test_reuse_gradient_unbiased(oxalis, prb_gradient):
+@pytest.mark.parametrize("target", ["shadowed", "unshadowed"])
+def test_reuse_gradient_unbiased(oxalis, prb_gradient, target):
     """12 independent chains (burn-in 4, then 4 steps each); z over chain means."""
     ref, ref_se = prb_gradient
     torch.manual_seed(0)
@@ -164,7 +182,7 @@ def test_reuse_gradient_unbiased(oxalis, prb_gradient):
     tex = oxalis.get(KEY)
     chain_means = []
     for c in range(12):
-        r = ReSTIRSampler(oxalis, candidates=4, burn_in=4, seed=c + 1)
+        r = ReSTIRSampler(oxalis, candidates=4, burn_in=4, seed=c + 1, target=target)
         gs = []
         for i in range(4):
             t = tex.clone().requires_grad_()
@@ -373,13 +391,71 @@ def test_grid_equals_kdtree_on_random_surface_points():
         assert 0.2 < np.mean([np.asarray(m).mean() for m in oa]) < 1.0  # the radius binds sometimes
 
 
-def test_grid_and_kdtree_give_identical_images(oxalis):
+def test_neighbour_backends_give_identical_images(oxalis):
+    """The screen window (radius / 5th-percentile footprint) covers the radius on this view,
+    so all three back-ends combine the same neighbours."""
     imgs = {}
-    for backend in ("kdtree", "grid"):
+    for backend in ("kdtree", "grid", "screen"):
         r = ReSTIRSampler(oxalis, candidates=4, burn_in=2, nn_backend=backend)
         imgs[backend] = [render(oxalis, {}, spp=2, seed=s, sampler=r) for s in range(2)]
-    for a, b in zip(imgs["kdtree"], imgs["grid"]):
-        assert torch.equal(a, b)
+        assert r.integrator._neighbour_search.last == backend
+    for a, b, c in zip(imgs["kdtree"], imgs["grid"], imgs["screen"]):
+        assert torch.equal(a, b) and torch.equal(a, c)
+
+
+def _pixel_layout_points(w: int, h: int, spp: int, seed: int):
+    """Jittered samples of a w x h image on a gently curved surface, in pixel units, in
+    ScreenLayout lane order."""
+    rng = np.random.default_rng(seed)
+    lane = np.arange(w * h * spp)
+    pix = lane // spp
+    x = pix % w + rng.random(len(lane))
+    y = pix // w + rng.random(len(lane))
+    z = 0.3 * np.sin(x / 3.0)
+    return mi.Point3f(*(mi.Float(v.astype(np.float32)) for v in (x, y, z)))
+
+
+@pytest.mark.parametrize("exclude_self", [False, True])
+def test_screen_search_equals_kdtree_when_the_window_covers_the_radius(exclude_self):
+    """Samples within radius 1.3 (pixel units) lie at most 2 pixels away: a window of 2 finds
+    exactly the kd-tree's neighbours; a window of 1 misses some (the check can fail)."""
+    w, h, spp, k, radius = 12, 10, 1, 4, 1.3
+    pts = _pixel_layout_points(w, h, spp, 0)
+    qs = pts if exclude_self else _pixel_layout_points(w, h, spp, 1)
+    rng = np.random.default_rng(2)
+    valid = mi.Bool(rng.random(w * h * spp) < 0.8)
+    q_valid = mi.Bool(rng.random(w * h * spp) < 0.9) if not exclude_self else valid
+    want_idx, want_ok = NeighbourSearch("kdtree")(pts, valid, qs, q_valid, k, radius, exclude_self)
+    assert 0.2 < np.mean([np.asarray(o).mean() for o in want_ok]) < 0.9  # the radius binds
+    for window, same in ((2, True), (1, False)):
+        idx, ok = NeighbourSearch("screen")(pts, valid, qs, q_valid, k, radius, exclude_self,
+                                            layout=ScreenLayout(w, h, spp, window))
+        equal = all(
+            np.array_equal(np.asarray(o), np.asarray(wo)) and np.array_equal(np.asarray(i)[np.asarray(o)], np.asarray(wi)[np.asarray(wo)])
+            for i, o, wi, wo in zip(idx, ok, want_idx, want_ok)
+        )
+        assert equal == same
+    with pytest.raises(ValueError, match="knn_screen: points and queries must have 240 lanes"):
+        knn_screen(pts, valid, qs, ScreenLayout(w, h, 2), k, radius)
+
+
+def test_screen_search_falls_back_when_the_sensor_moves(oxalis):
+    """Temporal reuse after the camera moved cannot use the previous step's pixel layout: the
+    step searches in world space, and the next one (same view again) in screen space."""
+    from torchir.integrators._knn import _default_backend
+
+    scene = torchir.Scene.builtin("oxalis_lite", resolution=RES, texture=6, dim_lights=3, hidden_lights=3)
+    r = ReSTIRSampler(scene, candidates=2, burn_in=1, nn_backend="screen")
+    render(scene, {}, spp=1, seed=0, sampler=r)
+    assert r.integrator._neighbour_search.last == "screen"
+    scene.params["sensor.to_world"] = mi.ScalarTransform4f().look_at(origin=[0.05, 0, 3.0], target=[0, 0, 0], up=[0, 1, 0])
+    scene.params.update()
+    render(scene, {}, spp=1, seed=1, sampler=r)
+    assert r.integrator._neighbour_search.last == _default_backend()
+    render(scene, {}, spp=1, seed=2, sampler=r)
+    assert r.integrator._neighbour_search.last == "screen"
+    render(scene, {}, spp=2, seed=3, sampler=r)  # another spp: another lane layout
+    assert r.integrator._neighbour_search.last == _default_backend()
 
 
 def test_knn_empty_sets():
@@ -390,23 +466,45 @@ def test_knn_empty_sets():
         assert len(idx) == 2 and not np.asarray(ok[0]).any()
 
 
-def test_auto_neighbour_search_times_both_then_keeps_the_faster_with_the_same_neighbours():
-    rng = np.random.default_rng(3)
-    pts = mi.Point3f(*(mi.Float(rng.random(400).astype(np.float32)) for _ in range(3)))
-    qs = mi.Point3f(*(mi.Float(rng.random(50).astype(np.float32)) for _ in range(3)))
-    want_idx, want_ok = knn_kdtree(pts, qs, 3, 0.2)
+def test_auto_neighbour_search_times_each_then_keeps_the_fastest_with_the_same_neighbours():
+    w, h, spp = 10, 8, 1
+    pts, qs = _pixel_layout_points(w, h, spp, 3), _pixel_layout_points(w, h, spp, 4)
+    valid = mi.Bool(np.ones(w * h * spp, bool))
+    want_idx, want_ok = knn_kdtree(pts, qs, 3, 1.2)
+    layout = ScreenLayout(w, h, spp, 2)
     search = NeighbourSearch("auto", timed=2)
-    for call in range(7):  # 1 untimed + 2 timed calls per back-end, then the choice
-        idx, ok = search(pts, qs, 3, 0.2)
+    for call in range(10):  # 1 untimed + 2 timed calls per back-end (3 with a layout), then the choice
+        idx, ok = search(pts, valid, qs, valid, 3, 1.2, layout=layout)
         for a, b, c, d in zip(idx, want_idx, ok, want_ok):
             assert np.array_equal(np.asarray(c), np.asarray(d))
             assert np.array_equal(np.asarray(a)[np.asarray(c)], np.asarray(b)[np.asarray(d)])
-        assert (search.chosen is None) == (call < 5)
-    assert search.chosen in ("kdtree", "grid") and all(len(v) == 2 for v in search.seconds.values())
-    assert search.chosen == min(search.seconds, key=lambda b: float(np.median(search.seconds[b])))
-    assert NeighbourSearch("grid").chosen == "grid"
-    with pytest.raises(ValueError, match="nn_backend must be 'auto', 'kdtree' or 'grid', got 'ball'"):
+        assert (True in search.chosen) == (call >= 8)
+    assert set(search.seconds) == {"kdtree", "grid", "screen"} and all(len(v) == 2 for v in search.seconds.values())
+    assert search.chosen[True] == min(search.seconds, key=lambda b: float(np.median(search.seconds[b])))
+    assert False not in search.chosen  # no call without a layout yet: that choice is made separately
+    search(pts, valid, qs, valid, 3, 1.2)
+    assert search.last in ("kdtree", "grid")
+    with pytest.raises(ValueError, match="nn_backend must be 'auto', 'kdtree', 'grid' or 'screen', got 'ball'"):
         NeighbourSearch("ball")
+
+
+def test_light_switched_on_after_burn_in_is_found_without_bias(oxalis):
+    """Burn-in with a spot off: no reservoir holds a sample of it. Once it is on, fresh
+    candidates find it and the chain means (8 chains, 8 steps) match the lit reference."""
+    spot = oxalis.get(SPOT)
+    means = {"shadowed": [], "unshadowed": []}
+    for target in means:
+        for c in range(8):
+            r = ReSTIRSampler(oxalis, candidates=4, burn_in=4, seed=c + 1, target=target)
+            for s in range(2):
+                render(oxalis, {SPOT: spot * 0}, spp=2, seed=s, sampler=r)
+            means[target].append(np.mean([render(oxalis, {}, spp=2, seed=10 + s, sampler=r).numpy() for s in range(8)], 0))
+    refs = np.stack([render(oxalis, {}, spp=512, seed=7100 + i).numpy() for i in range(4)])
+    ref_means = refs.reshape(4, -1).mean(1)
+    for target, chains in means.items():
+        ratio, se = _mean_ratio_and_se(np.stack(chains), refs.mean(0))
+        assert se < 0.05  # power: the spot is most of the light; missing it would darken by far more
+        assert abs(ratio - 1) < 3 * math.hypot(se, ref_means.std(ddof=1) / 2.0 / ref_means.mean()), target
 
 
 # ---------------------------------------------------------------------------------- T-U9
@@ -684,3 +782,32 @@ def test_oxalis_lite_emitter_pdf_option():
     assert np.allclose(pu, 1 / 6) and abs(sum(pp) - 1) < 1e-5 and max(pp) > 10 * min(pp)
     with pytest.raises(ValueError, match="emitter_pdf"):
         torchir.Scene.builtin("oxalis_lite", emitter_pdf="light")
+
+
+def test_emitter_watch_flags_lights_that_come_on_or_move_only(oxalis):
+    """Temporal reuse must stop for one step when a light comes on or moves (the support of
+    the old reservoirs no longer covers its samples), not when lights dim or go off."""
+    from torchir.integrators.restir_di import EmitterWatch
+
+    scene = torchir.Scene.builtin("oxalis_lite", resolution=8, texture=2, dim_lights=2, hidden_lights=1)
+    watch = EmitterWatch()
+    params = scene.params
+    base = watch(scene.mi_scene)
+    assert len(base[0]) == len(scene.mi_scene.emitters()) and all(base[0])
+    assert not EmitterWatch.same_support(None, base)
+
+    def after(key, value):
+        old = type(params[key])(params[key])  # a copy: the parameter object is updated in place
+        params[key] = value
+        params.update()
+        state = watch(scene.mi_scene)
+        params[key] = old
+        params.update()
+        return state
+
+    off = after(SPOT, mi.Color3f(0.0))
+    assert EmitterWatch.same_support(base, off)  # switched off: support shrinks
+    assert not EmitterWatch.same_support(off, base)  # switched on
+    assert EmitterWatch.same_support(base, after(SPOT, mi.Color3f(400.0)))  # brighter
+    assert not EmitterWatch.same_support(base, after("dim_00.position", mi.Point3f(0.1, 0.2, 2.0)))  # moved
+    assert EmitterWatch.same_support(base, watch(scene.mi_scene))

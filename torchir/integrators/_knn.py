@@ -7,6 +7,11 @@ Two back-ends that return the *same* neighbours (ascending distance, ties by ind
 - ``grid``: a uniform grid in Dr.Jit (cell >= radius, counting sort with ``scatter_inc`` +
   ``prefix_sum``, then each query scans its 27 cells in one ``dr.while_loop`` keeping a sorted
   top-k). Stays on the device (the CUDA back-end).
+- ``screen`` (:func:`knn_screen`): for a sensor that has not moved, the points are the previous
+  step's samples laid out like the queries (pixel-major, ``spp`` lanes per pixel), so the
+  candidates of a query are the samples of the ``(2 window + 1)^2`` pixels around its own: no
+  build, no host copy, one kernel. Exact (the same neighbours as the others) wherever every
+  point within ``radius`` of a query projects within ``window`` pixels of it.
 
 Both return ``(index, ok)``: lists of ``k`` ``UInt32``/``Bool`` arrays of the query width;
 ``index[i][q]`` is the ``i``-th nearest point of query ``q`` (only meaningful where ``ok``).
@@ -15,12 +20,13 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["knn", "knn_kdtree", "knn_grid", "have_scipy", "NeighbourSearch"]
+__all__ = ["knn", "knn_kdtree", "knn_grid", "knn_screen", "have_scipy", "NeighbourSearch", "ScreenLayout"]
 
 _MAX_CELLS = 1 << 22  # grid memory bound: coarser cells (still exact) beyond this
 
@@ -128,12 +134,7 @@ def knn_grid(points: mi.Point3f, queries: mi.Point3f, k: int, radius: float, exc
         accept = in_range & (d2 < r2)
         if exclude_self:
             accept &= j != qself
-        dc, ic = mi.Float(d2), mi.UInt32(j)
-        for t in range(k):  # insertion into the sorted top-k, (distance, index) order
-            less = accept & ((dc < bd[t]) | ((dc == bd[t]) & (ic < bi[t])))
-            nd, ni = dr.select(less, dc, bd[t]), dr.select(less, ic, bi[t])
-            dc, ic = dr.select(less, bd[t], dc), dr.select(less, bi[t], ic)
-            bd[t], bi[t] = nd, ni
+        _insert_top_k(bd, bi, accept, mi.Float(d2), mi.UInt32(j))
         # load the next of the 27 cells once the current one is exhausted
         load = ~in_range
         dz = mi.Int32(c // 9) - 1
@@ -159,6 +160,78 @@ def knn_grid(points: mi.Point3f, queries: mi.Point3f, k: int, radius: float, exc
     return idx, ok
 
 
+@dataclass(frozen=True)
+class ScreenLayout:
+    """Lane layout shared by the points and the queries of :func:`knn_screen`: lane
+    ``(y * width + x) * spp + s`` is sample ``s`` of pixel ``(x, y)``."""
+
+    width: int
+    height: int
+    spp: int
+    window: int = 2  # half-width in pixels of the searched square
+
+
+def _insert_top_k(bd: list, bi: list, accept, dc, ic) -> None:
+    """Insert ``(dc, ic)`` where ``accept`` into the per-lane sorted top-k ``(bd, bi)``,
+    ordered by (distance, index)."""
+    for t in range(len(bd)):
+        less = accept & ((dc < bd[t]) | ((dc == bd[t]) & (ic < bi[t])))
+        nd, ni = dr.select(less, dc, bd[t]), dr.select(less, ic, bi[t])
+        dc, ic = dr.select(less, bd[t], dc), dr.select(less, bi[t], ic)
+        bd[t], bi[t] = nd, ni
+
+
+def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: ScreenLayout, k: int,
+               radius: float, exclude_self: bool = False):
+    """k nearest valid ``points`` strictly closer than ``radius``, among the samples of the
+    pixels within ``layout.window`` of each query's pixel. ``points`` and ``queries`` both have
+    width ``width * height * spp`` in :class:`ScreenLayout` order; returns full-width columns
+    like :func:`knn_kdtree` (``index`` into ``points``)."""
+    w, h, spp, win = layout.width, layout.height, layout.spp, layout.window
+    n = w * h * spp
+    if dr.width(points) != n or dr.width(queries) != n:
+        raise ValueError(f"knn_screen: points and queries must have {n} lanes ({w}x{h}x{spp}), got "
+                         f"{dr.width(points)} and {dr.width(queries)}")
+    side = 2 * win + 1
+    count = side * side * spp
+    lane = dr.arange(mi.UInt32, n)
+    pix = lane // spp
+    qx, qy = mi.Int32(pix % w), mi.Int32(pix // w)
+    r2 = dr.opaque(mi.Float, radius * radius)
+    big = mi.UInt32(0xFFFFFFFF)
+    w_o, h_o, spp_o = dr.opaque(mi.Int32, w), dr.opaque(mi.Int32, h), dr.opaque(mi.UInt32, spp)
+    side_o, win_o = dr.opaque(mi.UInt32, side), dr.opaque(mi.Int32, win)
+
+    def cond(c, *best):
+        return c < count
+
+    def body(c, *best):
+        bd, bi = list(best[:k]), list(best[k:])
+        cell = c // spp_o
+        s = c - cell * spp_o
+        cx = qx + mi.Int32(cell % side_o) - win_o
+        cy = qy + mi.Int32(cell // side_o) - win_o
+        inside = (cx >= 0) & (cx < w_o) & (cy >= 0) & (cy < h_o)
+        j = (mi.UInt32(cy * w_o + cx)) * spp_o + s
+        accept = inside & dr.gather(mi.Bool, valid, j, inside)
+        pj = dr.gather(mi.Point3f, points, j, accept)
+        d2 = dr.squared_norm(pj - queries)
+        accept &= d2 < r2
+        if exclude_self:
+            accept &= j != lane
+        _insert_top_k(bd, bi, accept, mi.Float(d2), mi.UInt32(j))
+        return (c + 1, *bd, *bi)
+
+    state = (dr.zeros(mi.UInt32, n),) + tuple(dr.full(mi.Float, dr.inf, n) for _ in range(k))
+    state += tuple(big + dr.zeros(mi.UInt32, n) for _ in range(k))
+    out = dr.while_loop(state, cond, body)
+    bd, bi = out[1 : 1 + k], out[1 + k :]
+    ok = [d < r2 for d in bd]
+    idx = [dr.select(o, i, 0) for o, i in zip(ok, bi)]
+    dr.eval(idx, ok)
+    return idx, ok
+
+
 def _default_backend() -> str:
     return "kdtree" if (have_scipy() and not mi.variant().startswith("cuda")) else "grid"
 
@@ -175,39 +248,80 @@ def knn(points: mi.Point3f, queries: mi.Point3f, k: int, radius: float, backend:
 
 
 class NeighbourSearch:
-    """:func:`knn` with its back-end fixed, or for ``"auto"`` chosen by measurement.
+    """The neighbour search of ReSTIR reuse, with its back-end fixed or chosen by measurement.
 
-    Both back-ends return the same neighbours, so the choice changes time, never results.
-    ``auto`` on the CPU with scipy times the two on the caller's own queries: after one
-    untimed call each (the grid compiles its kernels), ``timed`` calls each alternate, then
-    the one with the lower median is kept (``chosen``). Measured at 48^2 the grid was 1.3x
-    faster per step than the kd-tree; the winner depends on the point count and the machine.
-    Without scipy, or on CUDA, ``auto`` is the grid.
+    Called with full-width point and query arrays and their validity masks, it returns ``k``
+    full-width ``(index, ok)`` columns (``ok`` is False for invalid queries). ``kdtree`` and
+    ``grid`` return the same neighbours, and so does ``screen`` where its window covers the
+    radius; it is available only when the caller passes the :class:`ScreenLayout` shared by
+    points and queries (a sensor that has not moved).
+
+    ``auto`` times the available back-ends on the caller's own queries: after one untimed call
+    each (compilation), ``timed`` calls each in turn, then keeps the one with the lower median
+    (``chosen``, separately for calls with and without a layout). Measured at 128^2 (1 spp,
+    ``oxalis_lite``): kd-tree 20 ms, grid 3.8 ms per search. Without scipy, or on CUDA, the
+    kd-tree is not a candidate.
     """
 
-    def __init__(self, backend: str = "auto", timed: int = 3) -> None:
-        if backend not in ("auto", "kdtree", "grid"):
-            raise ValueError(f"nn_backend must be 'auto', 'kdtree' or 'grid', got {backend!r}")
-        self.backend, self.timed = backend, timed
-        self.chosen: str | None = None if backend == "auto" else backend
-        self.seconds: dict[str, list[float]] = {"kdtree": [], "grid": []}
-        self._calls = 0
+    BACKENDS = ("kdtree", "grid", "screen")
 
-    def __call__(self, points: mi.Point3f, queries: mi.Point3f, k: int, radius: float, exclude_self: bool = False):
-        if self.chosen is None and _default_backend() == "grid":
-            self.chosen = "grid"
-        if self.chosen is not None:
-            return knn(points, queries, k, radius, self.chosen, exclude_self)
-        backend = ("kdtree", "grid")[self._calls % 2]
-        self._calls += 1
-        dr.eval(points, queries)
+    def __init__(self, backend: str = "auto", timed: int = 3) -> None:
+        if backend not in ("auto", *self.BACKENDS):
+            raise ValueError(f"nn_backend must be 'auto', 'kdtree', 'grid' or 'screen', got {backend!r}")
+        self.backend, self.timed = backend, timed
+        self.chosen: dict[bool, str] = {}  # has a layout -> back-end kept by 'auto'
+        self.seconds: dict[str, list[float]] = {b: [] for b in self.BACKENDS}
+        self._untimed: set[str] = set()
+        self.last: str | None = None  # the back-end of the last call
+
+    def candidates(self, layout: ScreenLayout | None) -> tuple[str, ...]:
+        out = ("kdtree", "grid") if _default_backend() == "kdtree" else ("grid",)
+        return out + (("screen",) if layout is not None else ())
+
+    def __call__(self, points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, q_valid: mi.Bool, k: int,
+                 radius: float, exclude_self: bool = False, layout: ScreenLayout | None = None):
+        if self.backend != "auto":
+            backend = self.backend
+            if backend == "screen" and layout is None:
+                backend = _default_backend()  # the sensor moved: no shared layout this step
+            return self._search(backend, points, valid, queries, q_valid, k, radius, exclude_self, layout)
+        key = layout is not None
+        if key in self.chosen:
+            return self._search(self.chosen[key], points, valid, queries, q_valid, k, radius, exclude_self, layout)
+        options = self.candidates(layout)
+        backend = min(options, key=lambda b: (b in self._untimed, len(self.seconds[b])))
+        dr.eval(points, valid, queries, q_valid)
         dr.sync_thread()
         start = time.perf_counter()
-        idx, ok = knn(points, queries, k, radius, backend, exclude_self)
-        dr.eval(idx, ok)
+        out = self._search(backend, points, valid, queries, q_valid, k, radius, exclude_self, layout)
+        dr.eval(out)
         dr.sync_thread()
-        if self._calls > 2:  # the first call of each back-end is not timed
+        if backend in self._untimed:
             self.seconds[backend].append(time.perf_counter() - start)
-        if all(len(v) >= self.timed for v in self.seconds.values()):
-            self.chosen = min(self.seconds, key=lambda b: float(np.median(self.seconds[b])))
+        self._untimed.add(backend)
+        if all(len(self.seconds[b]) >= self.timed for b in options):
+            self.chosen[key] = min(options, key=lambda b: float(np.median(self.seconds[b])))
+        return out
+
+    def _search(self, backend, points, valid, queries, q_valid, k, radius, exclude_self, layout):
+        self.last = backend
+        if backend == "screen":
+            idx, ok = knn_screen(points, valid, queries, layout, k, radius, exclude_self)
+            ok = [o & q_valid for o in ok]
+            return idx, ok
+        n = dr.width(q_valid)
+        src_idx = dr.compress(valid)
+        q_idx = dr.compress(q_valid)
+        pts = dr.gather(mi.Point3f, points, src_idx)
+        qs = dr.gather(mi.Point3f, queries, q_idx)
+        # exclude_self is only used with points == queries (same step), so compressed indices agree
+        idx_c, ok_c = knn(pts, qs, k, radius, backend, exclude_self)
+        idx, ok = [], []
+        for ic, oc in zip(idx_c, ok_c):
+            full_i = dr.zeros(mi.UInt32, n)
+            full_ok = dr.zeros(mi.Bool, n)
+            dr.scatter(full_i, dr.gather(mi.UInt32, src_idx, ic, oc), q_idx)
+            dr.scatter(full_ok, oc, q_idx)
+            idx.append(full_i)
+            ok.append(full_ok)
         return idx, ok

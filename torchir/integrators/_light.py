@@ -112,9 +112,11 @@ def eval_target(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool
     return f, dr.select(active, mi.luminance(f), 0.0)
 
 
-def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Sampler, active: mi.Bool):
+def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Sampler, active: mi.Bool,
+                     visibility: bool = True):
     """One light candidate (R15): emitter by ``sampling_weight``, then the emitter's own
-    sampling. Returns ``(y, f, p̂, w)`` with ``w = p̂ / p_c`` (R4, R25)."""
+    sampling. Returns ``(y, f, p̂, w)`` with ``w = p̂ / p_c`` (R4, R25); ``visibility=False``
+    skips the shadow ray (the unshadowed target)."""
     active = mi.Bool(active)  # the &= below must not modify the caller's mask
     n = dr.width(active)
     u = sampler.next_2d(active)
@@ -128,7 +130,8 @@ def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.S
     f = weight * ds.pdf * fs * dr.select(ds.delta, 1.0, g)  # = Le fs g
     nee = weight * sel_weight * fs  # = f / p_c
     active &= dr.isfinite(mi.luminance(nee)) & (mi.luminance(f) > 0)
-    active &= ~scene.ray_test(si.spawn_ray_to(ds.p), active)
+    if visibility:
+        active &= ~scene.ray_test(si.spawn_ray_to(ds.p), active)
     y = dr.zeros(LightSample(), n)
     y.em, y.p, y.n, y.uv, y.delta = idx, ds.p, mi.Vector3f(ds.n), ds.uv, ds.delta
     f = dr.select(active, f, 0.0)

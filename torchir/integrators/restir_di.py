@@ -51,9 +51,19 @@
      - False
    * - ``nn_backend``
      - str
-     - ``auto`` (the faster of the two on the first reuse steps, timed) | ``kdtree`` (scipy)
-       | ``grid`` (Dr.Jit); both find the same neighbours.
+     - ``auto`` (the fastest on the first reuse steps, timed) | ``kdtree`` (scipy) | ``grid``
+       (Dr.Jit) | ``screen`` (the previous step's samples of the surrounding pixels, for a
+       sensor that has not moved; else the others). All find the same neighbours where the
+       screen window (radius / 5th-percentile pixel footprint, 1-3 pixels) covers the radius.
      - auto
+
+   * - ``target``
+     - str
+     - ``shadowed``: p̂ includes visibility, one shadow ray per candidate and per neighbour
+       (the paper, R14); ``unshadowed`` (Bitterli et al. 2020, unbiased variant): candidates
+       and neighbour samples are weighted without shadow rays, one shadow ray tests the chosen
+       sample (W = 0 when occluded), the support test Z keeps its shadow rays.
+     - shadowed
 
 Only direct illumination at the first hit: emission seen by the camera plus one resampled
 light vertex (point, spot and area emitters). The gradient is the interior term (R17, R18):
@@ -89,6 +99,7 @@ _OPTIONS = {
     "grad_paths": "shared",
     "forward_only": False,
     "nn_backend": "auto",
+    "target": "shadowed",
 }
 
 
@@ -123,8 +134,11 @@ def _signature(scene: mi.Scene) -> tuple:
 class SensorState:
     prev: Any = None  # Reservoirs of the last step (or None)
     radius: float = 0.0  # resolved neighbour radius
+    window: int = 2  # screen-space search half-width in pixels (radius / small footprint)
     steps: int = 0
     signature: tuple = ()
+    camera: tuple | None = None  # (sensor matrix, width, height, spp) of ``prev``
+    lights: tuple | None = None  # EmitterWatch state when ``prev`` was made
 
 
 @dataclass
@@ -136,11 +150,14 @@ class StepCache:
     lanes: Any  # Reservoirs of the step (y, W, shading point)
     ray_weight: Any
     prev: Any  # the reservoirs the step combined with (for the decorrelated pass)
+    prev_camera: tuple | None = None  # the camera that rendered ``prev``
 
 
 @dataclass
 class PassStats:
-    valid_neighbors: float = 0.0
+    neighbor_count: Any = None  # UInt32 per lane: neighbours combined (None: no reuse)
+    k: int = 0
+    camera: tuple | None = None  # the pass's (sensor matrix, width, height, spp)
     timings: dict = field(default_factory=dict)
 
 
@@ -176,16 +193,32 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             raise ValueError(f"grad_paths must be 'shared' or 'decorrelated', got {cfg['grad_paths']!r}")
         self.grad_paths = cfg["grad_paths"]
         self.forward_only = bool(cfg["forward_only"])
-        if cfg["nn_backend"] not in ("auto", "kdtree", "grid"):
-            raise ValueError(f"nn_backend must be 'auto', 'kdtree' or 'grid', got {cfg['nn_backend']!r}")
+        if cfg["nn_backend"] not in ("auto", *_knn.NeighbourSearch.BACKENDS):
+            raise ValueError(f"nn_backend must be 'auto', 'kdtree', 'grid' or 'screen', got {cfg['nn_backend']!r}")
         if cfg["nn_backend"] == "kdtree" and not _knn.have_scipy():
             raise ValueError("nn_backend='kdtree' needs scipy (pip install scipy); use 'grid' or 'auto'")
         self.nn_backend = cfg["nn_backend"]
+        if cfg["target"] not in ("shadowed", "unshadowed"):
+            raise ValueError(f"target must be 'shadowed' or 'unshadowed', got {cfg['target']!r}")
+        self.target = cfg["target"]
         self._neighbour_search = _knn.NeighbourSearch(self.nn_backend)
+        self._emitter_watch = EmitterWatch()
         self.states: dict[int, SensorState] = {}
         self.last: dict[int, StepCache] = {}
-        self.stats: dict[str, float] = {}
+        self._last_pass = None
         self.timings: dict[str, float] = {}
+
+    @property
+    def stats(self) -> dict[str, float]:
+        """Reservoir statistics of the last step (computed when asked: they sync the host)."""
+        if self._last_pass is None:
+            return {}
+        out, stats = self._last_pass
+        return _reservoir_stats(out, stats)
+
+    @property
+    def shadowed(self) -> bool:
+        return self.target == "shadowed"
 
     @property
     def reuse(self) -> bool:
@@ -230,28 +263,35 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         st = self.state(scene, sensor)
         t0 = _tic()
         if st.prev is None and self.temporal and self.burn_in > 0:
+            st.lights = self._emitter_watch(scene)
             for i in range(self.burn_in):
                 burn_seed = int(mi.sample_tea_32(seed, 0x5EED0000 + i)[0])
-                _, st.prev, _ = self.sample_paths(scene, sensor, burn_seed, spp, st.prev, st)
+                _, st.prev, burn = self.sample_paths(scene, sensor, burn_seed, spp, st.prev, st, st.camera)
+                st.camera = burn.camera
         t_burn = _tic() - t0
-        prev = st.prev
-        lanes, out, stats = self.sample_paths(scene, sensor, seed, spp, prev, st)
+        lights = self._emitter_watch(scene)
+        prev, prev_camera = st.prev, st.camera
+        if prev is not None and not self._emitter_watch.same_support(st.lights, lights):
+            prev = None  # a light came on or moved: the old reservoirs cannot hold its samples
+        lanes, out, stats = self.sample_paths(scene, sensor, seed, spp, prev, st, prev_camera)
         ray_weight, image = lanes
         if self.temporal:
-            st.prev = out
+            st.prev, st.camera, st.lights = out, stats.camera, lights
         st.steps += 1
         self.timings = {"burn_in": t_burn, **stats.timings}
-        self.stats = _reservoir_stats(out, stats.valid_neighbors)
-        return image, StepCache(sensor, spp, out, ray_weight, prev)
+        self._last_pass = (out, stats)  # statistics computed on demand (host syncs)
+        return image, StepCache(sensor, spp, out, ray_weight, prev, prev_camera)
 
-    def sample_paths(self, scene: mi.Scene, sensor: int, seed: int, spp: int, prev, st: SensorState):
-        """One non-differentiable resampling pass (Alg. A4 without the backward).
+    def sample_paths(self, scene: mi.Scene, sensor: int, seed: int, spp: int, prev, st: SensorState,
+                     prev_camera: tuple | None = None):
+        """One non-differentiable resampling pass (Alg. A4 without the backward) against the
+        reservoirs ``prev``, rendered by a camera ``prev_camera`` (``SensorState.camera``).
 
         Returns ``((ray_weight, image), reservoirs, PassStats)``."""
         with dr.suspend_grad():
-            return self._sample_paths(scene, sensor, seed, spp, prev, st)
+            return self._sample_paths(scene, sensor, seed, spp, prev, st, prev_camera)
 
-    def _sample_paths(self, scene, sensor, seed, spp, prev, st):
+    def _sample_paths(self, scene, sensor, seed, spp, prev, st, prev_camera):
         timings: dict[str, float] = {}
         t0 = _tic()
         sensor_obj = scene.sensors()[sensor]
@@ -273,11 +313,14 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         f_sel, phat_sel = dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n)
         w_sum = dr.zeros(mi.Float, n)
         for _ in range(self.candidates):
-            y_m, f_m, phat_m, w_m = sample_candidate(scene, si, sampler, valid)
+            y_m, f_m, phat_m, w_m = sample_candidate(scene, si, sampler, valid, visibility=self.shadowed)
             w_sum += w_m
             take = valid & (sampler.next_1d(valid) * w_sum < w_m)  # no division (A1)
             y = dr.select(take, y_m, y)
             f_sel, phat_sel = dr.select(take, f_m, f_sel), dr.select(take, phat_m, phat_sel)
+        if not self.shadowed:  # one shadow ray for the chosen candidate; W = 0 when occluded
+            seen = _visible(scene, si, y, valid & (phat_sel > 0))
+            w_sum, f_sel = dr.select(seen, w_sum, 0.0), dr.select(seen, f_sel, 0.0)
         m0 = dr.select(valid, mi.Float(self.candidates), 0.0)
         r = dr.zeros(Reservoirs(), n)
         r.y, r.w_sum, r.M = y, w_sum, m0
@@ -289,20 +332,25 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         t1 = _tic()
         timings["ris"] = t1 - t0
         if st.radius <= 0:
-            st.radius = self.radius if self.radius > 0 else _auto_radius(ray, pi.t, valid)
+            auto_radius, small_footprint = _footprints(ray, pi.t, valid)
+            st.radius = self.radius if self.radius > 0 else auto_radius
+            st.window = int(min(3, max(1, np.ceil(st.radius / small_footprint))))
+        camera = (tuple(np.array(sensor_obj.world_transform().matrix).ravel().tolist()), w, h, spp)
 
         stats = PassStats()
         source = prev if self.temporal else (r if self.spatial else None)
         if self.reuse and source is not None:
             k = self.neighbors if self.spatial else 1
-            nbr, ok = self._neighbors(source, r, k, st.radius, exclude_self=not self.temporal)
+            static = (not self.temporal) or prev_camera == camera  # same view, same lane layout
+            layout = _knn.ScreenLayout(w, h, spp, st.window) if static else None
+            nbr, ok = self._neighbors(source, r, k, st.radius, exclude_self=not self.temporal, layout=layout)
             t2 = _tic()
             timings["nn"] = t2 - t1
             r, f_sel, phat_sel, n_ok = self._combine(scene, sampler, r, f_sel, phat_sel, source, nbr, ok)
             dr.eval(r, f_sel, n_ok)
             timings["combine"] = _tic() - t2
-            n_valid = max(int(dr.count(valid)[0]), 1)
-            stats.valid_neighbors = float(dr.sum(n_ok)[0]) / (k * n_valid)
+            stats.neighbor_count, stats.k = n_ok, k
+        stats.camera = camera
         t3 = _tic()
         contrib = ray_weight * (le_vis + f_sel * r.W)  # (R16)
         image = _develop(contrib, spp, h, w)
@@ -311,25 +359,16 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         stats.timings = timings
         return (ray_weight, image), r, stats
 
-    def _neighbors(self, source, r, k: int, radius: float, exclude_self: bool):
+    def _neighbors(self, source, r, k: int, radius: float, exclude_self: bool, layout=None):
         """k nearest valid reservoirs of ``source`` around each valid lane of ``r``, with the
-        normal test (spec §3.6). Returns ``k`` index columns and masks of width ``len(r)``."""
-        n = dr.width(r.valid)
-        src_idx = dr.compress(source.valid)
-        q_idx = dr.compress(r.valid)
-        pts = dr.gather(mi.Point3f, source.p, src_idx)
-        qs = dr.gather(mi.Point3f, r.p, q_idx)
-        idx_c, ok_c = self._neighbour_search(pts, qs, k, radius, exclude_self=exclude_self)
-        nbr, ok = [], []
-        for ic, oc in zip(idx_c, ok_c):
-            full_i = dr.zeros(mi.UInt32, n)
-            full_ok = dr.zeros(mi.Bool, n)
-            dr.scatter(full_i, dr.gather(mi.UInt32, src_idx, ic, oc), q_idx)
-            dr.scatter(full_ok, oc, q_idx)
-            n_src = dr.gather(mi.Vector3f, source.n, full_i, full_ok)
-            full_ok &= dr.dot(n_src, r.n) >= self.normal_threshold
-            nbr.append(full_i)
-            ok.append(full_ok)
+        normal test (spec §3.6). ``layout``: the :class:`~._knn.ScreenLayout` shared by
+        ``source`` and ``r`` (a sensor that has not moved), or None. Returns ``k`` index
+        columns and masks of width ``len(r)``."""
+        nbr, ok = self._neighbour_search(source.p, source.valid, r.p, r.valid, k, radius,
+                                         exclude_self=exclude_self, layout=layout)
+        for i in range(len(ok)):
+            n_src = dr.gather(mi.Vector3f, source.n, nbr[i], ok[i])
+            ok[i] = ok[i] & (dr.dot(n_src, r.n) >= self.normal_threshold)
         dr.eval(nbr, ok)
         return nbr, ok
 
@@ -341,21 +380,28 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         y, w_sum, m_sum = r.y, mi.Float(r.w_sum), mi.Float(r.M)  # w_0 = r_0.w_sum (R6)
         neighbours, m_caps = [], []
         n_ok = dr.zeros(mi.UInt32, dr.width(valid))
+        from_neighbour = dr.zeros(mi.Bool, dr.width(valid))
         for j, ok_i in zip(nbr, ok):
             ok_i = ok_i & valid
             r_i = dr.gather(Reservoirs(), source, j, ok_i)
             ok_i &= r_i.valid
             m_i = dr.minimum(r_i.M, cap)
-            f_i, phat_i = eval_target(scene, si, r_i.y, ok_i & (r_i.W > 0))
+            f_i, phat_i = eval_target(scene, si, r_i.y, ok_i & (r_i.W > 0), visibility=self.shadowed)
             w_i = phat_i * r_i.W * m_i  # (R6)
             w_sum += w_i
             take = ok_i & (sampler.next_1d(valid) * w_sum < w_i)  # (R7)
             y = dr.select(take, r_i.y, y)
             f_sel, phat_sel = dr.select(take, f_i, f_sel), dr.select(take, phat_i, phat_sel)
+            from_neighbour |= take
             m_sum += dr.select(ok_i, m_i, 0.0)
             neighbours.append((r_i, ok_i))
             m_caps.append(m_i)
             n_ok += dr.select(ok_i, 1, 0)
+        if not self.shadowed:  # the chosen neighbour sample must be visible here (else W = 0)
+            seen = ~from_neighbour | _visible(scene, si, y, from_neighbour & (phat_sel > 0))
+            f_sel, phat_sel = dr.select(seen, f_sel, 0.0), dr.select(seen, phat_sel, 0.0)
+        # Support test: a neighbour counts where its reservoirs could hold y. Reservoirs hold
+        # visible samples only (shadowed target, or W = 0 when occluded), so V is tested too.
         z = mi.Float(r.M)  # the fresh reservoir always counts (R8)
         for (r_i, ok_i), m_i in zip(neighbours, m_caps):
             si_i = rebuild_interaction(scene, r_i, ok_i)  # the neighbour's surface point (§6.2)
@@ -395,7 +441,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             if self.forward_only:
                 self.temporal = self.spatial = False
             try:
-                (ray_weight, _), lanes, _ = self.sample_paths(scene, cache.sensor, seed_grad, spp_grad, cache.prev, st)
+                (ray_weight, _), lanes, _ = self.sample_paths(
+                    scene, cache.sensor, seed_grad, spp_grad, cache.prev, st, cache.prev_camera)
             finally:
                 self.temporal, self.spatial = saved
             spp = spp_grad
@@ -427,8 +474,11 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         for sensor, st in self.states.items():
             out[sensor] = {
                 "radius": st.radius,
+                "window": st.window,
                 "steps": st.steps,
                 "signature": st.signature,
+                "camera": st.camera,
+                "lights": st.lights,
                 "reservoirs": None if st.prev is None else _struct_to_numpy(st.prev),
             }
         return out
@@ -437,8 +487,12 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.reset()
         for sensor, d in state.items():
             prev = None if d["reservoirs"] is None else _struct_from_numpy(Reservoirs(), d["reservoirs"])
+            camera = d.get("camera")  # absent in older checkpoints: the first step searches in world space
             self.states[int(sensor)] = SensorState(
-                prev=prev, radius=float(d["radius"]), steps=int(d["steps"]), signature=tuple(d["signature"])
+                prev=prev, radius=float(d["radius"]), window=int(d.get("window", 2)), steps=int(d["steps"]),
+                signature=tuple(d["signature"]),
+                camera=None if camera is None else (tuple(camera[0]), *(int(v) for v in camera[1:])),
+                lights=_as_tuples(d.get("lights")),  # absent: the first step does not reuse
             )
 
     def to_string(self) -> str:
@@ -449,6 +503,91 @@ class ReSTIRDirectIntegrator(RBIntegrator):
 
 
 # ---------------------------------------------------------------------- helpers
+class EmitterWatch:
+    """Which lights are on, and where they are, as the scene's parameters say.
+
+    Temporal reuse tests a neighbour's support (R8) in the *current* scene, which is exact only
+    while the support stays put (spec D7). A light that comes on (all its emission values were
+    zero) or moves makes the old reservoirs unable to hold its samples, so Z would count them
+    and darken the image (measured: 0.67x of the reference on the first step after a spot came
+    on). :meth:`same_support` says when the previous step's reservoirs must not be reused.
+    A light dimmed, brightened or switched off keeps or shrinks the support: reuse goes on.
+    """
+
+    _EMISSION = ("radiance.value", "intensity.value", "irradiance.value", "scale", ".data")
+    _PLACEMENT = ("position", "to_world", "vertex_positions", "direction")
+
+    def __init__(self) -> None:
+        self._scene_ref: int | None = None
+        self._keys: list[tuple[list[str], list[str]]] = []  # (emission, placement) keys per light
+        self._params = None
+
+    def _bind(self, scene: mi.Scene) -> None:
+        self._scene_ref, self._params = id(scene), mi.traverse(scene)
+        keys = list(self._params.keys())
+        self._keys = []
+        for em in scene.emitters():
+            shape = em.get_shape()
+            if shape is not None:
+                own, place = f"{shape.id()}.emitter.", [k for k in keys if k in (f"{shape.id()}.to_world", f"{shape.id()}.vertex_positions")]
+            else:
+                own = f"{em.id()}."
+                place = [k for k in keys if k.startswith(own) and k[len(own):] in self._PLACEMENT]
+            emission = [k for k in keys if k.startswith(own) and k.endswith(self._EMISSION) and "sampling_weight" not in k]
+            self._keys.append((emission, place))
+
+    def __call__(self, scene: mi.Scene) -> tuple:
+        """``(lights on, placements)``: one entry per emitter."""
+        if self._scene_ref != id(scene):
+            self._bind(scene)
+        on, where = [], []
+        for emission, place in self._keys:
+            on.append(all(_any_nonzero(self._params[k]) for k in emission))
+            where.append(tuple(_fingerprint(self._params[k]) for k in place))
+        return tuple(on), tuple(where)
+
+    @staticmethod
+    def same_support(before: tuple | None, now: tuple) -> bool:
+        """False when a light came on or moved since ``before`` (None: unknown, assume so)."""
+        if before is None:
+            return False
+        (on0, at0), (on1, at1) = before, now
+        if len(on0) != len(on1):
+            return False
+        return not any(b and not a for a, b in zip(on0, on1)) and at0 == at1
+
+
+def _as_tuples(value):
+    """Lists (e.g. from a JSON or YAML round trip) back to the tuples the state compares."""
+    if isinstance(value, (list, tuple)):
+        return tuple(_as_tuples(v) for v in value)
+    return value
+
+
+def _values(v) -> np.ndarray:
+    if isinstance(v, (int, float)):
+        return np.array([float(v)])
+    if "Transform" in type(v).__name__:  # (points have a .matrix too)
+        return np.asarray(v.matrix, dtype=np.float64).ravel()
+    if dr.width(v) == 1 and dr.depth_v(v) <= 2 and not dr.is_tensor_v(v):  # literals: no host sync
+        return np.array([float(v[i][0]) for i in range(dr.size_v(v))] if dr.depth_v(v) == 2 else [float(v[0])])
+    return np.asarray(v, dtype=np.float64).ravel()
+
+
+def _any_nonzero(v) -> bool:
+    return bool(np.any(_values(v) != 0))
+
+
+def _fingerprint(v) -> tuple:
+    vals = _values(v)
+    return tuple(vals.tolist()) if vals.size <= 16 else (vals.size, float(vals.sum()), float((vals * vals).sum()))
+
+
+def _visible(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool) -> mi.Bool:
+    """True where light vertex ``y`` is unoccluded from ``si`` (False where inactive)."""
+    return active & ~scene.ray_test(si.spawn_ray_to(y.p), active)
+
+
 def _check_int(name: str, value: Any, lo: int) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise TypeError(f"{name} must be an int, got {type(value).__name__}")
@@ -482,13 +621,15 @@ def _sample_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, w: int, h: in
     return ray, mi.Color3f(weight)
 
 
-def _auto_radius(ray: mi.RayDifferential3f, t: mi.Float, valid: mi.Bool) -> float:
-    """2x the median pixel footprint ``t * |d_x - d|`` of the hit lanes (D3)."""
+def _footprints(ray: mi.RayDifferential3f, t: mi.Float, valid: mi.Bool) -> tuple[float, float]:
+    """``(radius, small footprint)``: 2x the median pixel footprint ``t * |d_x - d|`` of the
+    hit lanes (D3), and its 5th percentile (sizes the screen-space search window)."""
     fp = t * dr.norm(ray.d_x - ray.d)
     vals = np.asarray(dr.gather(mi.Float, fp, dr.compress(valid & dr.isfinite(fp))))
-    if len(vals) == 0 or not np.isfinite(np.median(vals)) or np.median(vals) <= 0:
-        return 1e-2
-    return float(2.0 * np.median(vals))
+    vals = vals[vals > 0]
+    if len(vals) == 0:
+        return 1e-2, 5e-3
+    return float(2.0 * np.median(vals)), float(np.percentile(vals, 5))
 
 
 def _develop(contrib: mi.Color3f, spp: int, h: int, w: int) -> mi.TensorXf:
@@ -498,11 +639,14 @@ def _develop(contrib: mi.Color3f, spp: int, h: int, w: int) -> mi.TensorXf:
     return mi.TensorXf(dr.ravel(mi.Color3f(*chans)), shape=(h, w, 3))
 
 
-def _reservoir_stats(r, valid_neighbors: float) -> dict[str, float]:
+def _reservoir_stats(r, stats: PassStats) -> dict[str, float]:
     v = r.valid
     nv = int(dr.count(v)[0])
     if nv == 0:
         return {"mean_M": 0.0, "max_M": 0.0, "frac_W0": 0.0, "max_W": 0.0, "valid_neighbors": 0.0}
+    valid_neighbors = 0.0
+    if stats.neighbor_count is not None:
+        valid_neighbors = float(dr.sum(stats.neighbor_count)[0]) / (stats.k * nv)
     m = dr.select(v, r.M, 0.0)
     wv = dr.select(v, r.W, 0.0)
     return {

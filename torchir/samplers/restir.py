@@ -47,10 +47,14 @@ class ReSTIRSampler:
             ``render``'s ``seed_grad``/``spp_grad`` are unused) or ``"decorrelated"`` (a second
             resampling pass with ``seed_grad``/``spp_grad`` against the same previous
             reservoirs; removes the image/gradient correlation bias of non-linear losses).
-        nn_backend: ``"auto"`` | ``"kdtree"`` (scipy) | ``"grid"`` (Dr.Jit).
+        nn_backend: ``"auto"`` (timed) | ``"kdtree"`` (scipy) | ``"grid"`` (Dr.Jit) | ``"screen"``
+            (the previous step's samples in the surrounding pixels; a sensor that has not moved).
         seed: mixed into every render seed (0: the render seed is used as is).
         normal_threshold: neighbours with ``n . n' <`` this are dropped.
         preset: ``"restir"`` | ``"b1"`` | ``"b2"`` | ``"forward_only"`` (table above).
+        target: ``"shadowed"`` (p̂ includes visibility: a shadow ray per candidate and per
+            neighbour; the paper) or ``"unshadowed"`` (Bitterli's unbiased variant: one shadow
+            ray for the chosen sample, W = 0 when it is occluded; the support test keeps its rays).
 
     Example:
         >>> scene = torchir.Scene.builtin("oxalis_lite", resolution=32)
@@ -75,6 +79,7 @@ class ReSTIRSampler:
         seed: int = 0,
         normal_threshold: float = 0.9,
         preset: str = "restir",
+        target: str = "shadowed",
     ) -> None:
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a torchir.Scene, got {type(scene).__name__}")
@@ -107,6 +112,7 @@ class ReSTIRSampler:
             forward_only=forward_only,
             nn_backend=nn_backend,
             normal_threshold=normal_threshold,
+            target=target,
         )
 
     # ------------------------------------------------------------------ used by render()
@@ -175,5 +181,5 @@ class ReSTIRSampler:
         return (
             f"ReSTIRSampler(preset={self.preset!r}, candidates={i.candidates}, neighbors={i.neighbors}, "
             f"temporal={i.temporal}, spatial={i.spatial}, burn_in={i.burn_in}, grad_paths={i.grad_paths!r}, "
-            f"m_cap={i.m_cap:g}, nn_backend={i.nn_backend!r})"
+            f"m_cap={i.m_cap:g}, nn_backend={i.nn_backend!r}, target={i.target!r})"
         )
