@@ -64,6 +64,14 @@
        and neighbour samples are weighted without shadow rays, one shadow ray tests the chosen
        sample (W = 0 when occluded), the support test Z keeps its shadow rays.
      - shadowed
+   * - ``freeze``
+     - bool
+     - trace the resampling pass once per configuration and replay it (``dr.freeze``): no
+       Python tracing or code generation per step. Used without reuse, and with reuse when the
+       neighbours can come from the ``screen`` search (the sensor has not moved; ``nn_backend``
+       ``auto`` or ``screen``); other steps run unfrozen. Per-stage timings are then the whole
+       pass only.
+     - True
 
 Only direct illumination at the first hit: emission seen by the camera plus one resampled
 light vertex (point, spot and area emitters). The gradient is the interior term (R17, R18):
@@ -100,6 +108,7 @@ _OPTIONS = {
     "forward_only": False,
     "nn_backend": "auto",
     "target": "shadowed",
+    "freeze": True,
 }
 
 
@@ -158,6 +167,7 @@ class PassStats:
     neighbor_count: Any = None  # UInt32 per lane: neighbours combined (None: no reuse)
     k: int = 0
     camera: tuple | None = None  # the pass's (sensor matrix, width, height, spp)
+    frozen: bool = False  # replayed by dr.freeze (timings: the whole pass only)
     timings: dict = field(default_factory=dict)
 
 
@@ -203,6 +213,12 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.target = cfg["target"]
         self._neighbour_search = _knn.NeighbourSearch(self.nn_backend)
         self._emitter_watch = EmitterWatch()
+        self.freeze = bool(cfg["freeze"])
+        self._frozen_pass = None
+        self._geometry_watch = GeometryWatch()
+        self._geometry_seen: tuple | None = None  # geometry at the last step
+        self._geometry_frozen: tuple | None = None  # geometry the frozen pass was recorded with
+        self.last_pass_frozen = False
         self.states: dict[int, SensorState] = {}
         self.last: dict[int, StepCache] = {}
         self._last_pass = None
@@ -292,11 +308,73 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             return self._sample_paths(scene, sensor, seed, spp, prev, st, prev_camera)
 
     def _sample_paths(self, scene, sensor, seed, spp, prev, st, prev_camera):
-        timings: dict[str, float] = {}
-        t0 = _tic()
         sensor_obj = scene.sensors()[sensor]
-        film = sensor_obj.film()
-        w, h = (int(v) for v in film.crop_size())
+        w, h = (int(v) for v in sensor_obj.film().crop_size())
+        camera = (tuple(np.array(sensor_obj.world_transform().matrix).ravel().tolist()), w, h, spp)
+        if st.radius <= 0:
+            auto_radius, small_footprint = _footprints(scene, sensor_obj, seed, spp, w, h)
+            st.radius = self.radius if self.radius > 0 else auto_radius
+            st.window = int(min(3, max(1, np.ceil(st.radius / small_footprint))))
+        source = "temporal" if self.temporal else ("spatial" if self.spatial else "none")
+        if source == "temporal" and prev is None:
+            source = "none"
+        k = self.neighbors if self.spatial else 1
+        static = source != "temporal" or prev_camera == camera  # same view, same lane layout
+        layout = _knn.ScreenLayout(w, h, spp, st.window) if static else None
+        freeze = self.freeze and (source == "none" or (layout is not None and self.nn_backend in ("auto", "screen")))
+        if freeze:
+            freeze = self._frozen_pass_ready(scene)
+        stats = PassStats(camera=camera, k=k if source != "none" else 0)
+        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout)
+        t0 = _tic()
+        if freeze:  # traced once per configuration, then replayed (no Python tracing, no codegen)
+            ray_weight, image, r, n_ok = self._frozen_pass(dr.opaque(mi.UInt32, seed), *args, None)
+            dr.eval(image, r)
+            stats.timings = {"pass": _tic() - t0}
+            self._neighbour_search.last = "screen" if source != "none" else None
+        else:
+            timings: dict[str, float] = {}
+            ray_weight, image, r, n_ok = self._pass(mi.UInt32(seed), *args, timings)
+            stats.timings = timings
+        if source != "none":
+            stats.neighbor_count = n_ok
+        stats.frozen = self.last_pass_frozen = freeze
+        return (ray_weight, image), r, stats
+
+    def _frozen_pass_ready(self, scene: mi.Scene) -> bool:
+        """Whether the frozen pass may run now. A replay reuses the acceleration structure it
+        was recorded with, so once geometry changes (a mesh's vertices, a shape's transform)
+        the steps run unfrozen; after a step with unchanged geometry the pass is recorded
+        anew. Vertices bound by each render (shape optimisation) are a new variable every
+        step, so such runs stay unfrozen. (Measured: a frozen pass replayed after a vertex
+        edit rendered 0.)"""
+        now = self._geometry_watch(scene)
+        steady = self._geometry_seen is None or now == self._geometry_seen
+        self._geometry_seen = now
+        if self._frozen_pass is not None and now == self._geometry_frozen:
+            return True
+        self._frozen_pass = None  # recorded against an acceleration structure that is gone
+        if not steady:
+            return False
+        self._frozen_pass, self._geometry_frozen = dr.freeze(self._pass), now
+        return True
+
+    def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, timings):
+        """The resampling pass on Dr.Jit values only (so it can be frozen): camera rays,
+        streaming RIS, the neighbour search (``screen`` when frozen) and the combination.
+        ``timings`` (a dict, or None when frozen): seconds per stage, measured with syncs."""
+
+        def tic(name=None, since=None):
+            if timings is None:
+                return 0.0
+            now = _tic()
+            if name is not None:
+                timings[name] = now - since
+            return now
+
+        t0 = tic()
+        sensor_obj = scene.sensors()[sensor]
+        w, h = (int(v) for v in sensor_obj.film().crop_size())
         n = w * h * spp
         sampler = sensor_obj.sampler().fork()
         sampler.set_sample_count(spp)
@@ -329,48 +407,31 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         r.o, r.d, r.t = ray.o, ray.d, pi.t
         r.p, r.n, r.valid = si.p, mi.Vector3f(si.sh_frame.n), valid
         dr.eval(r, f_sel, phat_sel, le_vis, ray_weight)
-        t1 = _tic()
-        timings["ris"] = t1 - t0
-        if st.radius <= 0:
-            auto_radius, small_footprint = _footprints(ray, pi.t, valid)
-            st.radius = self.radius if self.radius > 0 else auto_radius
-            st.window = int(min(3, max(1, np.ceil(st.radius / small_footprint))))
-        camera = (tuple(np.array(sensor_obj.world_transform().matrix).ravel().tolist()), w, h, spp)
+        t1 = tic("ris", t0)
 
-        stats = PassStats()
-        source = prev if self.temporal else (r if self.spatial else None)
-        if self.reuse and source is not None:
-            k = self.neighbors if self.spatial else 1
-            static = (not self.temporal) or prev_camera == camera  # same view, same lane layout
-            layout = _knn.ScreenLayout(w, h, spp, st.window) if static else None
-            nbr, ok = self._neighbors(source, r, k, st.radius, exclude_self=not self.temporal, layout=layout)
-            t2 = _tic()
-            timings["nn"] = t2 - t1
-            r, f_sel, phat_sel, n_ok = self._combine(scene, sampler, r, f_sel, phat_sel, source, nbr, ok)
+        n_ok = None
+        if source != "none":
+            src = prev if source == "temporal" else r
+            exclude_self = source == "spatial"
+            if timings is None:  # frozen: the screen search (pure Dr.Jit, no host copies)
+                nbr, ok = _knn.knn_screen(src.p, src.valid, r.p, layout, k, radius, exclude_self)
+                ok = [o & r.valid for o in ok]
+            else:
+                nbr, ok = self._neighbour_search(src.p, src.valid, r.p, r.valid, k, radius,
+                                                 exclude_self=exclude_self, layout=layout)
+            for i in range(len(ok)):  # the normal test (spec §3.6)
+                n_src = dr.gather(mi.Vector3f, src.n, nbr[i], ok[i])
+                ok[i] = ok[i] & (dr.dot(n_src, r.n) >= self.normal_threshold)
+            dr.eval(nbr, ok)
+            t2 = tic("nn", t1)
+            r, f_sel, phat_sel, n_ok = self._combine(scene, sampler, r, f_sel, phat_sel, src, nbr, ok)
             dr.eval(r, f_sel, n_ok)
-            timings["combine"] = _tic() - t2
-            stats.neighbor_count, stats.k = n_ok, k
-        stats.camera = camera
-        t3 = _tic()
+            t1 = tic("combine", t2)
         contrib = ray_weight * (le_vis + f_sel * r.W)  # (R16)
         image = _develop(contrib, spp, h, w)
         dr.eval(image)
-        timings["develop"] = _tic() - t3
-        stats.timings = timings
-        return (ray_weight, image), r, stats
-
-    def _neighbors(self, source, r, k: int, radius: float, exclude_self: bool, layout=None):
-        """k nearest valid reservoirs of ``source`` around each valid lane of ``r``, with the
-        normal test (spec §3.6). ``layout``: the :class:`~._knn.ScreenLayout` shared by
-        ``source`` and ``r`` (a sensor that has not moved), or None. Returns ``k`` index
-        columns and masks of width ``len(r)``."""
-        nbr, ok = self._neighbour_search(source.p, source.valid, r.p, r.valid, k, radius,
-                                         exclude_self=exclude_self, layout=layout)
-        for i in range(len(ok)):
-            n_src = dr.gather(mi.Vector3f, source.n, nbr[i], ok[i])
-            ok[i] = ok[i] & (dr.dot(n_src, r.n) >= self.normal_threshold)
-        dr.eval(nbr, ok)
-        return nbr, ok
+        tic("develop", t1)
+        return ray_weight, image, r, n_ok
 
     def _combine(self, scene, sampler, r, f_sel, phat_sel, source, nbr, ok):
         """Bitterli's unbiased 1/Z combination with M capping (R6-R9; corrects Alg. P3, D1)."""
@@ -557,6 +618,29 @@ class EmitterWatch:
         return not any(b and not a for a, b in zip(on0, on1)) and at0 == at1
 
 
+class GeometryWatch:
+    """A fingerprint of the scene's geometry: the Dr.Jit variable of each mesh's vertex
+    positions (a new one whenever they are written) and each shape's transform."""
+
+    def __init__(self) -> None:
+        self._scene_ref: int | None = None
+        self._params = None
+        self._keys: list[str] = []
+
+    def __call__(self, scene: mi.Scene) -> tuple:
+        if self._scene_ref != id(scene):
+            self._scene_ref, self._params = id(scene), mi.traverse(scene)
+            shapes = {sh.id() for sh in scene.shapes()}
+            self._keys = [k for k in self._params.keys()
+                          if k.split(".", 1)[0] in shapes and k.endswith((".vertex_positions", ".to_world"))]
+        out = []
+        for key in self._keys:
+            v = self._params[key]
+            index = getattr(v, "index", 0)
+            out.append(index if index else _fingerprint(v))
+        return tuple(out)
+
+
 def _as_tuples(value):
     """Lists (e.g. from a JSON or YAML round trip) back to the tuples the state compares."""
     if isinstance(value, (list, tuple)):
@@ -621,11 +705,18 @@ def _sample_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, w: int, h: in
     return ray, mi.Color3f(weight)
 
 
-def _footprints(ray: mi.RayDifferential3f, t: mi.Float, valid: mi.Bool) -> tuple[float, float]:
+def _footprints(scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int, w: int, h: int) -> tuple[float, float]:
     """``(radius, small footprint)``: 2x the median pixel footprint ``t * |d_x - d|`` of the
     hit lanes (D3), and its 5th percentile (sizes the screen-space search window)."""
-    fp = t * dr.norm(ray.d_x - ray.d)
-    vals = np.asarray(dr.gather(mi.Float, fp, dr.compress(valid & dr.isfinite(fp))))
+    with dr.suspend_grad():
+        sampler = sensor.sampler().fork()
+        sampler.set_sample_count(spp)
+        sampler.set_samples_per_wavefront(spp)
+        sampler.seed(seed, w * h * spp)
+        ray, _ = _sample_rays(sensor, sampler, spp, w, h)
+        pi = scene.ray_intersect_preliminary(mi.Ray3f(ray), coherent=True)
+        fp = pi.t * dr.norm(ray.d_x - ray.d)
+        vals = np.asarray(dr.gather(mi.Float, fp, dr.compress(pi.is_valid() & dr.isfinite(fp))))
     vals = vals[vals > 0]
     if len(vals) == 0:
         return 1e-2, 5e-3

@@ -55,6 +55,8 @@ class ReSTIRSampler:
         target: ``"shadowed"`` (p̂ includes visibility: a shadow ray per candidate and per
             neighbour; the paper) or ``"unshadowed"`` (Bitterli's unbiased variant: one shadow
             ray for the chosen sample, W = 0 when it is occluded; the support test keeps its rays).
+        freeze: replay the traced resampling pass (``dr.freeze``) where it can (no reuse, or
+            screen-space neighbours of a sensor that has not moved): far less Python per step.
 
     Example:
         >>> scene = torchir.Scene.builtin("oxalis_lite", resolution=32)
@@ -80,6 +82,7 @@ class ReSTIRSampler:
         normal_threshold: float = 0.9,
         preset: str = "restir",
         target: str = "shadowed",
+        freeze: bool = True,
     ) -> None:
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a torchir.Scene, got {type(scene).__name__}")
@@ -113,6 +116,7 @@ class ReSTIRSampler:
             nn_backend=nn_backend,
             normal_threshold=normal_threshold,
             target=target,
+            freeze=freeze,
         )
 
     # ------------------------------------------------------------------ used by render()
