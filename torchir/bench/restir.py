@@ -1,323 +1,786 @@
 #!/usr/bin/env python
-"""ReSTIR for inverse direct illumination (paper 004) against its baselines on ``oxalis_lite``.
+"""ReSTIR for inverse direct illumination (paper 004) against plain Mitsuba, B.1 and B.2, with the camera-sampling floor.
 
-Methods (all through ``torchir.functions.render(..., sampler=ReSTIRSampler(...))``):
+Methods (every one recovers the scene's albedo texture, ``torchir.scenes.get(name).parameters[0]``):
 
-* **B.1**: one light sample per camera ray, no reuse (``preset="b1"``);
-* **B.2**: streaming RIS with M candidates, no reuse (``preset="b2"``);
-* **ReSTIR**: RIS + spatiotemporal reuse of the previous step's reservoirs (burn-in 32).
+* **direct**: the scene's own integrator (``prb``, ``max_depth`` 2: plain Mitsuba direct
+  illumination, what a user runs without ReSTIR): ``render(scene, params)`` without ``sampler=``;
+* **B.1**: one light sample per camera ray, no reuse (``ReSTIRSampler(preset="b1")``);
+* **B.2**: streaming RIS over ``--candidates`` shadowed candidates, no reuse (``preset="b2"``);
+* **ReSTIR (shadowed)** / **ReSTIR (unshadowed)**: RIS + spatiotemporal reuse of the previous
+  step's reservoirs, ``target="shadowed"`` (p̂ includes visibility, the paper) or
+  ``"unshadowed"`` (one shadow ray for the chosen sample);
+* **floor**: the oracle of spec §5.1, RIS over ``--oracle-candidates`` (256) shadowed
+  candidates, no reuse, at the same seeds and spp as the method: the camera rays of a
+  ``ReSTIRSampler`` render depend only on the seed, so the oracle sees the same camera rays
+  and almost no light noise. Its error is the *camera-sampling floor*: with ``e`` a method's
+  error, ``e² = floor² + light²`` and ``light = sqrt(max(e² − floor², 0))`` is what a light
+  sampler can remove; no light sampler gains more than ``e_baseline / floor`` (the *bound*,
+  printed beside every gain: "gain 3.1x of possible 8.2x").
 
-Each baseline runs twice: at *equal samples* (the same spp as ReSTIR) and at *equal time*
-(spp raised until its seconds/step matches ReSTIR's; measured once, interleaved, before the
-experiments). Three experiments (spec §7):
+Experiments, per scene (``--scenes``):
 
-* **T-B1 gradient error** at the initial (grey) texture: the adjoint of the L2 loss against
-  the target, held fixed (so the error is the estimator's, not the loss's), relative error
-  ``||g - g_ref|| / ||g_ref||`` averaged over the steps after burn-in (D9); reference: prb
-  (direct light, max_depth 2) at high spp. Uniform and power emitter selection.
-* **T-B2 reconstruction**: Adam (lr 0.02) from a grey texture, L2 image loss, clamp to
-  [1e-3, 1]; texture RMSE against the ground truth after N steps, with ``shared`` and
-  ``decorrelated`` gradient paths; all methods step in lockstep (interleaved); wall time
-  includes ReSTIR's burn-in.
-* **T-B4 overhead**: seconds per stage of a ReSTIR step (RIS, NN, combination, backward) and
-  the overhead of reuse over a B.2 step at equal samples.
+* **Gradient error** (spec T-B1, D9): the adjoint of the L2 loss at the grey (0.5) texture, held
+  fixed (the error is the estimator's, not the loss's); ``relerr = ||g − g_ref|| / ||g_ref||``
+  with ``g_ref`` from ``prb`` at ``--ref-spp`` (four independent batches: their spread gives the
+  reference's own relative standard error, printed; it adds to every error in quadrature).
+  Reported as the RMS over ``--grad-steps`` steps (squared errors add, so floor and light parts
+  separate), at *equal samples* (every method at ``--spp``) and at *equal time*: every method's
+  spp is raised until its seconds per step match the slower ReSTIR variant's at ``--spp``,
+  burn-in charged (``step + burn-in / grad_steps``: the burn-in is spent to produce these
+  ``grad_steps`` gradients). The budget comes from the equal-samples runs; each other method's
+  spp from up to ``--cal-rounds`` timing probes (interpolated between the probes around the
+  budget: step time is not proportional to spp). The table shows the seconds per step the
+  equal-time runs actually took. The runs of each group step in lockstep (interleaved), so
+  load drift hits every method alike.
+* **Reconstruction at equal wall time, through the trainer** (spec T-B2): a real
+  ``InverseRenderingModule`` + ``ViewDataModule`` + ``lightning.pytorch.Trainer`` run per method
+  (Adam, ``--lr``, L2 loss, grey init, bounds [1e-3, 1], every method at ``--spp``). The slower
+  ReSTIR variant trains ``--recon-steps`` steps (its burn-in falls in its first step, so it is
+  charged); every other method trains for that wall time (Lightning's ``max_time``): cheaper
+  methods take more steps. Texture RMSE against the ground truth after the budget. Once per
+  ``--grad-paths`` mode of the samplers: ``shared`` (the paper, the configs' default: the
+  gradient re-uses the image's paths, which correlates them, a bias of the L2 loss that grows
+  with the image noise, spec D5) and ``decorrelated``; ``direct`` (prb) is always decorrelated.
+* **Cost per stage** (spec T-B4): seconds per step of each method at equal samples, the
+  ReSTIR integrator's stage timers (RIS, NN search, combination, develop, backward; ``other``:
+  the rest, e.g. the torch/Dr.Jit boundary; a pass replayed by ``dr.freeze`` has a single
+  ``pass`` timer, so B.2 and ReSTIR are then also timed a few steps with ``freeze=False``),
+  its burn-in once, the ratio of a ReSTIR step to a B.2 step at equal samples, and of a ReSTIR
+  training step to a direct training step through the trainer.
 
-Usage:
-    python scripts/bench_restir.py            # 64x64, texture 32, T-B1 32 steps, T-B2 150 steps
-    python scripts/bench_restir.py --quick    # 48x48, texture 16, 12 / 40 steps (a few minutes)
+Usage (``torchir bench restir [--quick]`` runs the same in a fresh process):
+    python -m torchir.bench.restir --quick     # 32², first default scene, burn-in 8, 8 gradient / 10 training steps (< 1 min)
+    python -m torchir.bench.restir             # 128², default scenes, 32 gradient steps, 150 training steps (~5 min)
+    python -m torchir.bench.restir --scenes oxalis_lite --resolution 64 --spp 2
 
-Writes ``<out>/results.json``, ``<out>/gradient_error.png`` and ``<out>/reconstruction.png``.
+Writes ``<out>/results.json``, ``<out>/tables.md`` (= ``summary.md``, which the bench report
+shows), ``<out>/gradient_<scene>.png`` (gradient error against seconds per step) and
+``<out>/reconstruction_<scene>.png`` (texture RMSE against wall time).
 """
 from __future__ import annotations
 
 import argparse
+import datetime
+import gc
 import json
-import platform
+import logging
+import math
+import statistics
+import tempfile
 import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-import drjit as dr
-import numpy as np
-import torch
+__all__ = ["BASELINES", "METHODS", "ORACLE", "RESTIRS", "main", "parse_args", "plot_results", "summarize_scene", "tables"]
 
-import torchir
-from torchir.functions import render
-from torchir.samplers import ReSTIRSampler
+DEFAULT_SCENES = ("ajar_painting", "many_lights", "oxalis_lite")
+BASELINES = ("direct", "B.1", "B.2")
+RESTIRS = ("ReSTIR (shadowed)", "ReSTIR (unshadowed)")
+METHODS = (*BASELINES, *RESTIRS)
+ORACLE = "floor (oracle)"
+STAGES = ("pass", "ris", "nn", "combine", "develop", "backward")  # "pass": a frozen (dr.freeze) pass has one timer
+BOUNDS = [0.001, 1.0]
 
-KEY = "canvas.bsdf.reflectance.data"
 
-
-def parse_args(argv=None) -> argparse.Namespace:
+# ------------------------------------------------------------------------------- options
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--resolution", type=int, default=64)
-    p.add_argument("--texture", type=int, default=32)
-    p.add_argument("--spp", type=int, default=4, help="ReSTIR (and equal-sample baseline) spp")
-    p.add_argument("--candidates", type=int, default=8)
-    p.add_argument("--burn-in", type=int, default=32)
-    p.add_argument("--grad-steps", type=int, default=32, help="T-B1 steps averaged after burn-in")
-    p.add_argument("--recon-steps", type=int, default=150, help="T-B2 optimisation steps")
-    p.add_argument("--ref-spp", type=int, default=4096, help="reference spp (gradient and target)")
+    p.add_argument("--scenes", default=None,
+                   help=f"comma-separated built-in scenes (default: those of {','.join(DEFAULT_SCENES)} that exist; quick: the first)")
+    p.add_argument("--resolution", type=int, default=None, help="film size (default 128, quick 32)")
+    p.add_argument("--spp", type=int, default=1, help="samples per pixel of ReSTIR and of every method at equal samples")
+    p.add_argument("--candidates", type=int, default=8, help="M of B.2 and ReSTIR")
+    p.add_argument("--oracle-candidates", type=int, default=256, help="candidates of the floor oracle (>= 256, spec §5.1)")
+    p.add_argument("--burn-in", type=int, default=None, help="ReSTIR burn-in passes, charged to ReSTIR (default 32, quick 8)")
+    p.add_argument("--nn-backend", default="auto", choices=("auto", "kdtree", "grid", "screen"))
+    p.add_argument("--grad-steps", type=int, default=None, help="gradient steps per method (default 32, quick 8)")
+    p.add_argument("--cal-steps", type=int, default=None, help="timed steps per calibration probe (default 6, quick 2)")
+    p.add_argument("--cal-rounds", type=int, default=None, help="calibration probes per method (default 3, quick 1)")
+    p.add_argument("--max-spp", type=int, default=256, help="largest equal-time spp of a method")
+    p.add_argument("--ref-spp", type=int, default=None, help="spp of the reference gradient and images (default 4096, quick 1024)")
+    p.add_argument("--recon-steps", type=int, default=None, help="training steps of the budget's ReSTIR run (default 150, quick 10)")
+    p.add_argument("--recon-seeds", type=int, default=1, help="reconstruction seeds (medians over them)")
+    p.add_argument("--target-spp", type=int, default=None, help="spp of the trainer's target image (default 1024, quick 128)")
     p.add_argument("--lr", type=float, default=0.02)
+    p.add_argument("--grad-paths", default=None,
+                   help="comma list of the samplers' gradient paths in the reconstruction, shared and/or decorrelated "
+                        "(default both, quick shared; the first fills the main table; direct (prb) is always decorrelated)")
+    p.add_argument("--no-reconstruction", action="store_true", help="skip the trainer runs")
+    p.add_argument("--quick", action="store_true",
+                   help="32², the first default scene, burn-in 8, 8 gradient / 10 training steps, shared paths only: under a minute")
     p.add_argument("--out", default="results/bench_restir")
-    p.add_argument("--quick", action="store_true", help="48x48, texture 16, 12 gradient / 40 reconstruction steps")
     a = p.parse_args(argv)
-    if a.quick:
-        a.resolution, a.texture, a.grad_steps, a.recon_steps, a.ref_spp = 48, 16, 12, 40, 2048
+    q = a.quick
+    a.resolution = a.resolution or (32 if q else 128)
+    a.burn_in = (8 if q else 32) if a.burn_in is None else a.burn_in
+    a.grad_steps = a.grad_steps or (8 if q else 32)
+    a.cal_steps = a.cal_steps or (2 if q else 6)
+    a.cal_rounds = (1 if q else 3) if a.cal_rounds is None else a.cal_rounds
+    a.ref_spp = a.ref_spp or (1024 if q else 4096)
+    a.recon_steps = a.recon_steps or (10 if q else 150)
+    a.target_spp = a.target_spp or (128 if q else 1024)
+    a.grad_paths = [m.strip() for m in (a.grad_paths or ("shared" if q else "shared,decorrelated")).split(",") if m.strip()]
+    if not a.grad_paths or any(m not in ("shared", "decorrelated") for m in a.grad_paths):
+        p.error("--grad-paths takes shared and/or decorrelated")
+    for name in ("resolution", "spp", "candidates", "oracle_candidates", "cal_steps", "max_spp", "recon_steps", "recon_seeds", "target_spp"):
+        if getattr(a, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be >= 1")
+    if a.grad_steps < 2:
+        p.error("--grad-steps must be >= 2 (the first step holds the burn-in and is left out of the step time)")
+    if a.ref_spp < 4:
+        p.error("--ref-spp must be >= 4 (four reference batches)")
     return a
 
 
+def resolve_scenes(spec: str | None, quick: bool = False) -> tuple[list[str], list[str]]:
+    """(scenes to run, default scenes not run). Default: the scenes of ``DEFAULT_SCENES`` that
+    are built in; with ``quick`` only the first of them (one scene keeps it under a minute)."""
+    import torchir
+
+    available = torchir.scenes.available()
+    if spec is None:
+        present = [s for s in DEFAULT_SCENES if s in available]
+        chosen = present[:1] if quick else present
+        return chosen, [s for s in DEFAULT_SCENES if s not in chosen]
+    names = [s.strip() for s in spec.split(",") if s.strip()]
+    unknown = [s for s in names if s not in available]
+    if unknown or not names:
+        raise ValueError(f"unknown scene(s) {unknown} in --scenes; available: {', '.join(available)}")
+    return names, []
+
+
+def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None:
+    """``ReSTIRSampler`` keyword arguments of ``method`` (None: the scene's own integrator)."""
+    if method == "direct":
+        return None
+    if method == "B.1":
+        return {"preset": "b1"}
+    if method == "B.2":
+        return {"preset": "b2", "candidates": a.candidates}
+    if method == ORACLE:
+        return {"preset": "b2", "candidates": a.oracle_candidates}
+    if method in RESTIRS:
+        target = "unshadowed" if "unshadowed" in method else "shadowed"
+        return {"candidates": a.candidates, "burn_in": a.burn_in, "target": target, "nn_backend": a.nn_backend}
+    raise ValueError(f"unknown method {method!r}")
+
+
+# ----------------------------------------------------------------------- gradient error
 def _sync_time() -> float:
+    import drjit as dr
+
     dr.sync_thread()
     return time.perf_counter()
 
 
-def make_scene(a, emitter_pdf: str) -> torchir.Scene:
-    return torchir.Scene.builtin("oxalis_lite", resolution=a.resolution, texture=a.texture, emitter_pdf=emitter_pdf)
+@dataclass
+class Problem:
+    """One scene's fixed gradient problem: the L2 adjoint at the grey texture and its reference."""
+
+    name: str
+    scene: Any
+    key: str
+    grey: Any
+    adjoint: Any
+    g_ref: Any
+    ref_relative_se: float
+    ref_seconds: float
+
+    def sampler(self, method: str, a: argparse.Namespace, burn_in: int | None = None, **extra: Any):
+        from torchir.samplers import ReSTIRSampler
+
+        options = sampler_options(method, a)
+        if options is None:
+            return None
+        if burn_in is not None and "burn_in" in options:
+            options = {**options, "burn_in": burn_in}
+        return ReSTIRSampler(self.scene, **options, **extra)
+
+    def step(self, sampler, spp: int, seed: int) -> tuple[float, float, dict[str, float]]:
+        """One gradient at the grey texture: (seconds of render + backward, relative error, diagnostics)."""
+        from torchir.functions import render
+
+        t = self.grey.clone().requires_grad_()
+        extra = {} if sampler is None else {"sampler": sampler}
+        t0 = _sync_time()
+        image = render(self.scene, {self.key: t}, spp=spp, seed=seed, **extra)
+        (image * self.adjoint).sum().backward()
+        seconds = _sync_time() - t0
+        error = float((t.grad - self.g_ref).norm() / self.g_ref.norm())
+        return seconds, error, (sampler.diagnostics() if sampler is not None else {})
 
 
-def sampler_for(scene, method: str, a, grad_paths: str = "shared", seed: int = 0) -> ReSTIRSampler:
-    if method == "B.1":
-        return ReSTIRSampler(scene, preset="b1", grad_paths=grad_paths, seed=seed)
-    if method == "B.2":
-        return ReSTIRSampler(scene, preset="b2", candidates=a.candidates, grad_paths=grad_paths, seed=seed)
-    if method == "ReSTIR-cap20":  # Bitterli's long memory (spec D2): M capped at 20 * candidates
-        return ReSTIRSampler(scene, candidates=a.candidates, burn_in=a.burn_in, grad_paths=grad_paths, seed=seed,
-                             m_cap=20 * a.candidates)
-    return ReSTIRSampler(scene, candidates=a.candidates, burn_in=a.burn_in, grad_paths=grad_paths, seed=seed)
+def make_problem(name: str, a: argparse.Namespace) -> Problem:
+    """Scene, target, adjoint at the grey texture and the prb reference gradient (4 batches)."""
+    import torch
 
+    import torchir
+    from torchir.functions import render
 
-def step_time(scene, method, a, spp, grey, adjoint, steps=6) -> float:
-    """Median seconds of a full step (render + backward) after warm-up (burn-in excluded)."""
-    r = sampler_for(scene, method, a)
-    times = []
-    for i in range(steps + 2):
+    started = time.perf_counter()
+    scene = torchir.Scene.builtin(name, resolution=a.resolution)
+    key = torchir.scenes.get(name).parameters[0]
+    grey = torch.full_like(scene.get(key), 0.5)
+    target = render(scene, {}, spp=a.ref_spp, seed=1)
+    at_grey = render(scene, {key: grey}, spp=a.ref_spp, seed=2)
+    adjoint = (2.0 * (at_grey - target) / at_grey.numel()).detach()  # d(L2)/dI at the grey texture
+    batches = []
+    for b in range(4):
         t = grey.clone().requires_grad_()
-        t0 = _sync_time()
-        img = render(scene, {KEY: t}, spp=spp, seed=i, sampler=r)
-        (img * adjoint).sum().backward()
-        t1 = _sync_time()
-        if i >= 2:
-            times.append(t1 - t0)
-    return float(np.median(times))
+        (render(scene, {key: t}, spp=a.ref_spp // 4, seed=3 + b) * adjoint).sum().backward()
+        batches.append(t.grad)
+    g = torch.stack(batches)
+    g_ref = g.mean(0)
+    relative_se = float(g.std(0).norm() / 2.0 / g_ref.norm())  # SE of the 4-batch mean: sd / sqrt(4)
+    return Problem(name, scene, key, grey, adjoint, g_ref, relative_se, time.perf_counter() - started)
 
 
-def calibrate(scene, a, grey, adjoint) -> dict:
-    """Seconds/step at equal samples and the baselines' equal-time spp (interleaved)."""
-    t = {m: [] for m in ("B.1", "B.2", "ReSTIR")}
-    for _ in range(2):
-        for m in t:
-            t[m].append(step_time(scene, m, a, a.spp, grey, adjoint))
-    sec = {m: float(np.median(v)) for m, v in t.items()}
-    spp_eq = {m: max(a.spp, int(round(a.spp * sec["ReSTIR"] / sec[m]))) for m in ("B.1", "B.2")}
-    # refine: time is not linear in spp (fixed costs per step); re-measure against ReSTIR
-    for _ in range(2):
-        for m in spp_eq:
-            ratio = step_time(scene, "ReSTIR", a, a.spp, grey, adjoint) / step_time(scene, m, a, spp_eq[m], grey, adjoint)
-            spp_eq[m] = max(a.spp, int(round(spp_eq[m] * ratio)))
-    return {"seconds_per_step": sec, "equal_time_spp": spp_eq}
+def warm_up(problem: Problem, a: argparse.Namespace) -> None:
+    """Compile every method's kernels (and the burn-in's) before anything is timed."""
+    for method in (*METHODS, ORACLE):
+        problem.step(problem.sampler(method, a, burn_in=1), a.spp, 90_000)  # burn-in pass, then a reuse step
 
 
-def methods_table(a, cal) -> list[tuple[str, str, int]]:
-    """(label, method, spp) of every run."""
-    return [
-        ("B.1 (eq. samples)", "B.1", a.spp),
-        ("B.2 (eq. samples)", "B.2", a.spp),
-        (f"B.1 (eq. time, {cal['equal_time_spp']['B.1']} spp)", "B.1", cal["equal_time_spp"]["B.1"]),
-        (f"B.2 (eq. time, {cal['equal_time_spp']['B.2']} spp)", "B.2", cal["equal_time_spp"]["B.2"]),
-        (f"ReSTIR (m_cap {20 * a.candidates}, spec D2)", "ReSTIR-cap20", a.spp),
-        ("ReSTIR", "ReSTIR", a.spp),  # default m_cap = 2 * candidates
-    ]
+def probe(problem: Problem, method: str, spp: int, a: argparse.Namespace, seed0: int) -> dict[str, float]:
+    """Seconds per step of ``method`` at ``spp``: the median of ``cal_steps`` steps after two
+    untimed ones (the first holds the burn-in, kernel compilation and, at a new spp, the
+    recording of a frozen pass; the second, re-recordings), the burn-in once, and the step with
+    the burn-in charged over ``grad_steps``."""
+    sampler = problem.sampler(method, a)
+    steps, burn_in = [], 0.0
+    for i in range(a.cal_steps + 2):
+        seconds, _, diag = problem.step(sampler, spp, seed0 + i)
+        if i == 0:
+            burn_in = float(diag.get("time_burn_in", 0.0))
+        elif i > 1:
+            steps.append(seconds)
+    step = statistics.median(steps)
+    return {"spp": spp, "step": step, "burn_in": burn_in, "charged": step + burn_in / a.grad_steps}
 
 
-def gradient_error(scene, a, cal, grey, adjoint, g_ref) -> dict:
-    """T-B1: mean relative gradient error per step (steps interleaved across methods)."""
-    runs = methods_table(a, cal)
-    samplers = {label: sampler_for(scene, m, a) for label, m, _ in runs}
-    errs = {label: [] for label, _, _ in runs}
-    grads = {label: [] for label, _, _ in runs}
-    secs = {label: [] for label, _, _ in runs}
-    for i in range(a.grad_steps):
-        for label, _, spp in runs:
-            t = grey.clone().requires_grad_()
-            t0 = _sync_time()
-            img = render(scene, {KEY: t}, spp=spp, seed=1000 + i, sampler=samplers[label])
-            (img * adjoint).sum().backward()
-            secs[label].append(_sync_time() - t0)
-            errs[label].append(float((t.grad - g_ref).norm() / g_ref.norm()))
-            grads[label].append(t.grad)
-    restir = np.mean(errs["ReSTIR"])
-    window = min(8, a.grad_steps)
-
-    def windowed(label: str) -> float:  # error of the mean of `window` consecutive gradients
-        g = torch.stack(grads[label])
-        return float(np.mean([float((g[i : i + window].mean(0) - g_ref).norm() / g_ref.norm())
-                              for i in range(len(g) - window + 1)]))
-    return {
-        label: {
-            "relerr": float(np.mean(errs[label])),
-            "relerr_sd": float(np.std(errs[label])),
-            "seconds_per_step": float(np.median(secs[label])),
-            "ratio_to_restir": float(np.mean(errs[label]) / restir),
-            f"relerr_mean_of_{window}": windowed(label),
-        }
-        for label, _, _ in runs
-    }
+def equal_time_spp(probes: list[dict[str, float]], budget: float, spp: int, max_spp: int) -> int:
+    """The spp whose charged seconds per step meet ``budget``, within [spp, max_spp]: linear
+    interpolation between the probes that bracket the budget, else the secant through the two
+    probes nearest to it (step time is not proportional to spp: fixed costs per step, frozen
+    kernels that change with the lane count), else proportional from the nearest probe."""
+    if probes[0]["charged"] >= budget:
+        return spp
+    below = [q for q in probes if q["charged"] < budget]
+    above = [q for q in probes if q["charged"] >= budget]
+    near = min(probes, key=lambda q: abs(q["charged"] - budget))
+    estimate = near["spp"] * budget / near["charged"]
+    if below and above:
+        lo, hi = max(below, key=lambda q: q["spp"]), min(above, key=lambda q: q["spp"])
+        pair = (lo, hi) if hi["spp"] > lo["spp"] else None
+    else:
+        ranked = sorted(probes, key=lambda q: abs(q["charged"] - budget))[:2]
+        pair = tuple(sorted(ranked, key=lambda q: q["spp"])) if len(ranked) == 2 else None
+    if pair is not None and pair[1]["spp"] > pair[0]["spp"] and pair[1]["charged"] > pair[0]["charged"]:
+        lo, hi = pair
+        estimate = lo["spp"] + (budget - lo["charged"]) * (hi["spp"] - lo["spp"]) / (hi["charged"] - lo["charged"])
+    return int(min(max_spp, max(spp, round(estimate))))
 
 
-def reconstruction(scene, a, cal, gt, target, grey, grad_paths: str) -> dict:
-    """T-B2: lockstep Adam runs, texture RMSE against the ground truth."""
-    runs = methods_table(a, cal)
-    state = {}
-    for label, m, spp in runs:
-        t0 = _sync_time()
-        r = sampler_for(scene, m, a, grad_paths=grad_paths)
-        p = torch.nn.Parameter(grey.clone())
-        state[label] = {"r": r, "p": p, "opt": torch.optim.Adam([p], lr=a.lr), "spp": spp, "time": 0.0,
-                        "rmse": [float((grey - gt).pow(2).mean().sqrt())], "t": [0.0]}
-    for i in range(a.recon_steps):
-        for label, _, _ in runs:
-            s = state[label]
-            t0 = _sync_time()
-            s["opt"].zero_grad()
-            img = render(scene, {KEY: s["p"]}, spp=s["spp"], seed=5000 + i, sampler=s["r"])
-            loss = ((img - target) ** 2).mean()
-            loss.backward()
-            s["opt"].step()
-            with torch.no_grad():
-                s["p"].clamp_(1e-3, 1.0)
-            s["time"] += _sync_time() - t0
-            s["rmse"].append(float((s["p"].detach() - gt).pow(2).mean().sqrt()))
-            s["t"].append(s["time"])
-    restir = state["ReSTIR"]["rmse"][-1]
-    return {
-        label: {"rmse": s["rmse"][-1], "seconds": s["time"], "ratio_to_restir": s["rmse"][-1] / restir,
-                "curve": s["rmse"], "curve_t": s["t"]}
-        for label, s in state.items()
-    }
+def calibrate(problem: Problem, a: argparse.Namespace, equal_samples: list[dict[str, Any]]) -> dict[str, Any]:
+    """Equal-time spp of every method. The budget is the charged seconds per step of the slower
+    ReSTIR variant in the equal-samples runs (``grad_steps`` interleaved steps: a steadier
+    measure than a short probe); each other method starts from its own equal-samples timing
+    and gets up to ``cal_rounds`` probes, each at the spp the probes so far point to."""
+    runs = {r["method"]: r for r in equal_samples if r["spp"] == a.spp}
+    first = {m: {"spp": a.spp, "step": runs[m]["seconds_per_step"], "burn_in": runs[m]["burn_in_seconds"],
+                 "charged": runs[m]["charged_seconds_per_step"]} for m in METHODS}
+    owner = max(RESTIRS, key=lambda m: first[m]["charged"])
+    budget = first[owner]["charged"]
+    probes = {m: [first[m]] for m in METHODS}
+    spp_eq = {owner: a.spp}
+    for m in METHODS:
+        if m == owner:
+            continue
+        spp_eq[m] = equal_time_spp(probes[m], budget, a.spp, a.max_spp)
+        for round_ in range(a.cal_rounds):
+            if spp_eq[m] in {q["spp"] for q in probes[m]}:
+                break
+            probes[m].append(probe(problem, m, spp_eq[m], a, 30_000 + 100 * round_))
+            spp_eq[m] = equal_time_spp(probes[m], budget, a.spp, a.max_spp)
+    return {"budget_method": owner, "budget_seconds": budget, "equal_time_spp": {m: spp_eq[m] for m in METHODS}, "probes": probes}
 
 
-def overhead(scene, a, grey, adjoint, steps=8) -> dict:
-    """T-B4: mean seconds per stage of a ReSTIR step and of a B.2 step (equal samples)."""
+def _freezes() -> bool:
+    """Whether ``ReSTIRSampler`` replays frozen passes (then its stage timers give one ``pass``)."""
+    import inspect
+
+    from torchir.samplers import ReSTIRSampler
+
+    return "freeze" in inspect.signature(ReSTIRSampler).parameters
+
+
+def stage_breakdown(problem: Problem, a: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """Where the time of a step goes when the pass is not frozen: ``cal_steps`` steps of B.2 and
+    each ReSTIR variant with ``freeze=False`` (per-stage timers with syncs; the Python tracing a
+    frozen pass saves shows up in the stages). Empty when the sampler does not freeze."""
+    if not _freezes():
+        return {}
     out = {}
-    for m in ("B.2", "ReSTIR"):
-        r = sampler_for(scene, m, a)
-        acc = {}
-        total = []
-        for i in range(steps + 2):
-            t = grey.clone().requires_grad_()
-            t0 = _sync_time()
-            (render(scene, {KEY: t}, spp=a.spp, seed=9000 + i, sampler=r) * adjoint).sum().backward()
-            total.append(_sync_time() - t0)
-            if i >= 2:
-                for k, v in r.diagnostics().items():
-                    if k.startswith("time_") and k != "time_burn_in":
-                        acc.setdefault(k, []).append(v)
-        out[m] = {k: float(np.mean(v)) for k, v in acc.items()}
-        out[m]["total"] = float(np.median(total[2:]))
-    out["overhead_pct"] = 100.0 * (out["ReSTIR"]["total"] / out["B.2"]["total"] - 1.0)
+    for m in ("B.2", *RESTIRS):
+        sampler = problem.sampler(m, a, burn_in=min(a.burn_in, 2), freeze=False)
+        steps, per_step = [], []
+        for i in range(a.cal_steps + 1):
+            seconds, _, diag = problem.step(sampler, a.spp, 40_000 + i)
+            if i > 0:
+                steps.append(seconds)
+                per_step.append(_stages(diag, seconds))
+        out[f"{m}, unfrozen"] = {"seconds_per_step": statistics.median(steps), "stages": _median_stages(per_step)}
     return out
 
 
-def print_table(title: str, header: list[str], rows: list[list]) -> str:
-    lines = [f"### {title}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    for row in rows:
-        lines.append("| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row) + " |")
-    text = "\n".join(lines)
-    print(text + "\n", flush=True)
+def _stages(diag: dict[str, float], seconds: float) -> dict[str, float]:
+    """A step's stage timers (``time_*`` of the diagnostics, burn-in left out) and ``other``: the
+    rest of the step's ``seconds``. Empty for the scene's own integrator."""
+    stages = {k[5:]: float(v) for k, v in diag.items() if k.startswith("time_") and k != "time_burn_in"}
+    if stages:
+        stages["other"] = max(0.0, seconds - sum(stages.values()))
+    return stages
+
+
+def _median_stages(steps: list[dict[str, float]]) -> dict[str, float]:
+    names = dict.fromkeys(k for s in steps for k in s)
+    return {k: statistics.median(s.get(k, 0.0) for s in steps) for k in names}
+
+
+def gradient_runs(problem: Problem, a: argparse.Namespace, keys: list[tuple[str, int]]) -> list[dict[str, Any]]:
+    """The runs ``keys`` (``(method, spp)``) stepped in lockstep (interleaved) for ``grad_steps``
+    steps. Step ``i`` uses seed ``1000 + i`` in every run, so the ReSTIRSampler runs at one spp
+    share their camera rays (the floor oracle's with the method's)."""
+    keys = list(dict.fromkeys(keys))
+    runs = {k: {"method": k[0], "spp": k[1], "sampler": problem.sampler(k[0], a), "relerr_steps": [], "seconds": [],
+                "burn_in": 0.0, "stage_steps": []} for k in keys}
+    for i in range(a.grad_steps):
+        for k in keys:
+            r = runs[k]
+            seconds, error, diag = problem.step(r["sampler"], k[1], 1000 + i)
+            r["relerr_steps"].append(error)
+            if i == 0:
+                r["burn_in"] = float(diag.get("time_burn_in", 0.0))
+                continue
+            r["seconds"].append(seconds)
+            r["stage_steps"].append(_stages(diag, seconds))
+    out = []
+    for k in keys:
+        r = runs.pop(k)
+        squares = [e * e for e in r["relerr_steps"]]
+        step = statistics.median(r["seconds"])
+        stages = _median_stages(r["stage_steps"])
+        out.append({
+            "method": r["method"], "spp": r["spp"], "relerr_steps": r["relerr_steps"],
+            "relerr": math.sqrt(statistics.fmean(squares)),  # RMS over steps: squared errors add
+            "relerr_sq_se": statistics.stdev(squares) / math.sqrt(len(squares)),
+            "seconds_per_step": step, "burn_in_seconds": r["burn_in"],
+            "charged_seconds_per_step": step + r["burn_in"] / a.grad_steps, "stages": stages,
+        })
+    return out
+
+
+# ------------------------------------------------------------------------ reconstruction
+def _quiet() -> None:
+    import lightning.pytorch  # noqa: F401 - it sets its loggers' levels on import: override them after
+
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+    warnings.filterwarnings("ignore", module="lightning")
+    warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+
+
+def _recorder():
+    import lightning.pytorch as pl
+
+    class Recorder(pl.Callback):
+        """Per step: its seconds, the elapsed training time and the texture RMSE after it
+        (``param_error[0]``: the initial error)."""
+
+        def __init__(self) -> None:
+            self.step_seconds: list[float] = []
+            self.elapsed: list[float] = [0.0]
+            self.param_error: list[float] = []
+
+        def on_train_start(self, trainer, pl_module) -> None:
+            self.truth = pl_module.ground_truth()
+            self.param_error.append(pl_module.parameter_error(self.truth))
+            self.start = time.perf_counter()
+
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+            self.t0 = time.perf_counter()
+
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+            now = time.perf_counter()
+            self.step_seconds.append(now - self.t0)
+            self.elapsed.append(now - self.start)
+            pl_module.project_parameters()  # the iterate the next step starts from
+            self.param_error.append(pl_module.parameter_error(self.truth))
+
+    return Recorder()
+
+
+def train(name: str, key: str, method: str, a: argparse.Namespace, seed: int, targets, workdir: Path,
+          max_seconds: float | None, grad_paths: str = "shared") -> tuple[dict[str, Any], Any]:
+    """One training run of ``method`` through the real trainer: ``recon_steps`` steps, or (with
+    ``max_seconds``) as many as fit into that wall time. ``targets``: ``(images, views)`` of an
+    earlier run (None: render them). Returns the measurements and the targets."""
+    import lightning.pytorch as pl
+
+    from torchir.training import InverseRenderingModule, ViewDataModule
+
+    options = sampler_options(method, a)
+    sampler = None if options is None else {"type": "restir", **options, "grad_paths": grad_paths, "seed": seed}
+    module = InverseRenderingModule(
+        scene=name, resolution=a.resolution, parameters={key: {"init": 0.5, "bounds": BOUNDS}}, loss="l2",
+        sampler=sampler, spp=a.spp, lr=a.lr, seed=seed, preview_spp=1,
+    )
+    data = ViewDataModule(target_spp=a.target_spp)
+    if targets is not None:  # setup() keeps targets that are already there
+        data.targets, data.views = targets
+    pl.seed_everything(seed, verbose=False)
+    recorder = _recorder()
+    trainer = pl.Trainer(
+        max_steps=a.recon_steps if max_seconds is None else 1000 * a.recon_steps,
+        max_time=None if max_seconds is None else datetime.timedelta(seconds=max_seconds),
+        logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+        log_every_n_steps=1, default_root_dir=str(workdir), callbacks=[recorder],
+    )
+    trainer.fit(module, data)
+    if module.nonfinite is not None:
+        raise RuntimeError(f"{method}: {module.nonfinite}")
+    return {
+        "method": method, "grad_paths": grad_paths, "seed": seed, "steps": len(recorder.step_seconds), "step_seconds": recorder.step_seconds,
+        "elapsed": recorder.elapsed, "param_error": recorder.param_error, "final_param_error": recorder.param_error[-1],
+        "train_seconds": recorder.elapsed[-1],
+    }, (data.targets, data.views)
+
+
+def reconstruction(name: str, key: str, a: argparse.Namespace, budget_method: str) -> dict[str, list[dict[str, Any]]]:
+    """Per gradient-paths mode and seed: ``budget_method`` (the ReSTIR variant that set the
+    equal-time budget of the gradient runs) for ``recon_steps`` steps (its first step holds the
+    burn-in), then every other method for that wall time. Each run's module (and Mitsuba scene)
+    is freed before the next is built: the next scene then gets the same Dr.Jit instance ids, so
+    the kernels compiled for the gradient runs serve it and no run's first step is charged for
+    compiling (a live earlier scene made every kernel new: 0.5-4.6 s in a 32² first step)."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    targets = None
+    with tempfile.TemporaryDirectory(prefix="torchir_bench_restir_") as workdir:
+        for mode in a.grad_paths:
+            runs = out.setdefault(mode, [])
+            for seed in range(a.recon_seeds):
+                budget = None
+                for method in (budget_method, *[m for m in METHODS if m != budget_method]):
+                    t0 = time.perf_counter()
+                    gc.collect()
+                    run, targets = train(name, key, method, a, seed, targets, Path(workdir), budget, mode)
+                    budget = run["train_seconds"] if budget is None else budget
+                    runs.append(run)
+                    print(f"[restir] {name} reconstruction ({mode} paths) seed {seed} {method}: {run['steps']} steps, "
+                          f"{run['train_seconds']:.1f} s (first step {run['step_seconds'][0]:.2f} s), "
+                          f"RMSE {run['param_error'][0]:.4f} -> {run['final_param_error']:.4f} ({time.perf_counter() - t0:.1f} s)", flush=True)
+    return out
+
+
+# ----------------------------------------------------------------------------- summary
+def _median(values: Sequence[float]) -> float:
+    values = [v for v in values if v is not None and not math.isnan(v)]
+    return float(statistics.median(values)) if values else float("nan")
+
+
+def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int],
+                    recon: dict[str, list[dict[str, Any]]] | None = None) -> dict[str, Any]:
+    """One row per method (and the floor oracle) from the gradient runs and training runs.
+
+    Row fields: ``relerr_equal_samples``, ``floor`` (the oracle at ``spp``), ``light``
+    (``sqrt(max(e² − floor², 0))``), ``relerr_equal_time``, ``spp_equal_time``,
+    ``seconds_equal_time`` (charged), ``floor_equal_time`` (the oracle at that spp, where
+    measured), ``gain`` (best baseline's equal-time error / this one's), ``bound`` (best
+    baseline's equal-time error / ``floor_equal_time``), ``seconds_per_step``,
+    ``burn_in_seconds``, ``charged_seconds_per_step``, ``stages`` and ``step_ratio_to_B.2`` at
+    equal samples. ``recon``: ``{grad_paths mode: training runs}``; per mode
+    ``reconstruction_summary[mode]`` gives per method ``recon_rmse`` (median over seeds),
+    ``recon_initial_rmse``, ``recon_steps``, ``recon_seconds``, ``train_step_seconds`` (median
+    step after the first), ``train_step_ratio_to_direct`` and ``recon_ratio_to_best_baseline``
+    (RMSE / the best baseline's), and the rows carry the first mode's (``recon_grad_paths``).
+    Also returns ``best_baseline`` (equal time) and ``best_recon_baseline`` (first mode)."""
+    by = {(r["method"], r["spp"]): r for r in runs}
+    floors = {s: r["relerr"] for (m, s), r in by.items() if m == ORACLE}
+    floor = floors[spp]
+    rows: dict[str, dict[str, Any]] = {}
+    for m in METHODS:
+        eqs, eqt = by[(m, spp)], by[(m, spp_eq[m])]
+        e = eqs["relerr"]
+        rows[m] = {
+            "relerr_equal_samples": e, "floor": floor, "light": math.sqrt(max(e * e - floor * floor, 0.0)),
+            "relerr_equal_time": eqt["relerr"], "spp_equal_time": spp_eq[m], "seconds_equal_time": eqt["charged_seconds_per_step"],
+            "floor_equal_time": floors.get(spp_eq[m]) if m in RESTIRS else None,
+            "seconds_per_step": eqs["seconds_per_step"], "burn_in_seconds": eqs["burn_in_seconds"],
+            "charged_seconds_per_step": eqs["charged_seconds_per_step"], "stages": eqs["stages"],
+        }
+    best = min(BASELINES, key=lambda m: rows[m]["relerr_equal_time"])
+    e_best = rows[best]["relerr_equal_time"]
+    for m, row in rows.items():
+        row["gain"] = e_best / row["relerr_equal_time"] if row["relerr_equal_time"] > 0 else float("inf")
+        row["bound"] = e_best / row["floor_equal_time"] if row["floor_equal_time"] else None
+        row["step_ratio_to_B.2"] = row["seconds_per_step"] / rows["B.2"]["seconds_per_step"]
+        row["charged_step_ratio_to_B.2"] = row["charged_seconds_per_step"] / rows["B.2"]["seconds_per_step"]
+    oracle = by[(ORACLE, spp)]
+    rows[ORACLE] = {"relerr_equal_samples": floor, "floor": floor, "light": 0.0, "relerr_equal_time": None,
+                    "spp_equal_time": None, "seconds_equal_time": None, "floor_equal_time": None, "gain": None, "bound": None,
+                    "seconds_per_step": oracle["seconds_per_step"], "burn_in_seconds": 0.0,
+                    "charged_seconds_per_step": oracle["charged_seconds_per_step"], "stages": oracle["stages"],
+                    "step_ratio_to_B.2": oracle["seconds_per_step"] / rows["B.2"]["seconds_per_step"],
+                    "charged_step_ratio_to_B.2": oracle["charged_seconds_per_step"] / rows["B.2"]["seconds_per_step"]}
+    out: dict[str, Any] = {"rows": rows, "best_baseline": best, "floors": {str(s): f for s, f in sorted(floors.items())}}
+    if recon:
+        out["reconstruction_summary"] = {}
+        for mode, mode_runs in recon.items():
+            summary = {}
+            for m in METHODS:
+                mine = [r for r in mode_runs if r["method"] == m]
+                summary[m] = {
+                    "recon_rmse": _median([r["final_param_error"] for r in mine]),
+                    "recon_initial_rmse": _median([r["param_error"][0] for r in mine]),
+                    "recon_steps": _median([float(r["steps"]) for r in mine]),
+                    "recon_seconds": _median([r["train_seconds"] for r in mine]),
+                    "train_step_seconds": _median([_median(r["step_seconds"][1:] or r["step_seconds"]) for r in mine]),
+                }
+            best_recon = min(BASELINES, key=lambda m: summary[m]["recon_rmse"])
+            for m in METHODS:
+                summary[m]["train_step_ratio_to_direct"] = summary[m]["train_step_seconds"] / summary["direct"]["train_step_seconds"]
+                summary[m]["recon_ratio_to_best_baseline"] = summary[m]["recon_rmse"] / summary[best_recon]["recon_rmse"]
+            out["reconstruction_summary"][mode] = {"best_baseline": best_recon, "rows": summary}
+        primary = next(iter(recon))
+        for m in METHODS:
+            rows[m].update(out["reconstruction_summary"][primary]["rows"][m], recon_grad_paths=primary)
+        out["best_recon_baseline"] = out["reconstruction_summary"][primary]["best_baseline"]
+    return out
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "n/a"
+        if math.isinf(value):
+            return "inf"
+        return f"{value:.3g}" if abs(value) < 1e5 else f"{value:.3e}"
+    return str(value).replace("|", "/")
+
+
+def _table(header: list[str], rows: list[list[Any]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header), *["| " + " | ".join(_fmt(v) for v in row) + " |" for row in rows]]
+
+
+def gain_text(row: dict[str, Any], best: str, method: str) -> str:
+    """``"gain 3.1x of possible 8.2x"`` (bound where the floor at that spp was measured)."""
+    if row.get("gain") is None:
+        return "-"
+    def x(v: float) -> str:  # two significant digits, no exponent
+        return f"{v:.2g}x" if v < 100 else f"{v:.0f}x"
+
+    text = x(row["gain"]) + (" (best)" if method == best else "")
+    if row.get("bound") is not None:
+        text = f"gain {x(row['gain'])} of possible {x(row['bound'])}"
     return text
 
 
-def main(argv=None) -> None:
-    a = parse_args(argv)
-    torchir.backend.set_variant("auto")
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    results = {"config": vars(a), "machine": platform.platform(), "T-B1": {}, "T-B2": {}}
-    tables = []
-    t_start = time.perf_counter()
-    # One reference for both emitter pdfs (the pdf changes the noise, not the expectation):
-    # target, the L2 adjoint at the grey texture and its prb gradient, from the uniform scene.
-    ref_scene = make_scene(a, "uniform")
-    gt = ref_scene.get(KEY)
-    grey = torch.full_like(gt, 0.5)
-    target = render(ref_scene, {}, spp=a.ref_spp, seed=1)
-    ref_img = render(ref_scene, {KEY: grey}, spp=a.ref_spp, seed=2)
-    adjoint = (2.0 * (ref_img - target) / ref_img.numel()).detach()  # d(L2)/dI at the grey texture
-    gs = []
-    for s in range(4):
-        t = grey.clone().requires_grad_()
-        (render(ref_scene, {KEY: t}, spp=a.ref_spp // 4, seed=3 + s) * adjoint).sum().backward()
-        gs.append(t.grad)
-    g_ref = torch.stack(gs).mean(0)
-    results["reference_gradient_relative_se"] = float(torch.stack(gs).std(0).norm() / 2.0 / g_ref.norm())
-    for pdf in ("uniform", "power"):
-        scene = ref_scene if pdf == "uniform" else make_scene(a, pdf)
-        cal = calibrate(scene, a, grey, adjoint)
-        results.setdefault("calibration", {})[pdf] = cal
-        print(f"[{pdf}] seconds/step at {a.spp} spp: {cal['seconds_per_step']}; equal-time spp: {cal['equal_time_spp']}", flush=True)
-        tb1 = gradient_error(scene, a, cal, grey, adjoint, g_ref)
-        results["T-B1"][pdf] = tb1
-        tables.append(print_table(
-            f"T-B1 gradient relative error, emitter pdf = {pdf} ({a.grad_steps} steps after burn-in)",
-            ["method", "relerr", "sd", "s/step", "error / ReSTIR", f"relerr of {min(8, a.grad_steps)}-step mean"],
-            [[k, v["relerr"], v["relerr_sd"], v["seconds_per_step"], v["ratio_to_restir"],
-              v[f"relerr_mean_of_{min(8, a.grad_steps)}"]] for k, v in tb1.items()],
-        ))
-        for mode in ("shared", "decorrelated"):
-            tb2 = reconstruction(scene, a, cal, gt, target, grey, mode)
-            results["T-B2"][f"{pdf}/{mode}"] = tb2
-            tables.append(print_table(
-                f"T-B2 albedo RMSE after {a.recon_steps} steps, emitter pdf = {pdf}, grad_paths = {mode} "
-                f"(initial RMSE {tb2['ReSTIR']['curve'][0]:.4f})",
-                ["method", "RMSE", "seconds (total)", "RMSE / ReSTIR"],
-                [[k, v["rmse"], v["seconds"], v["ratio_to_restir"]] for k, v in tb2.items()],
-            ))
-        if pdf == "uniform":
-            tb4 = overhead(scene, a, grey, adjoint)
-            results["T-B4"] = tb4
-            stages = sorted(k for k in tb4["ReSTIR"] if k != "total")
-            tables.append(print_table(
-                f"T-B4 seconds per stage at {a.spp} spp (overhead of reuse over B.2: {tb4['overhead_pct']:.0f} %)",
-                ["method", *stages, "total"],
-                [[m, *[tb4[m].get(k, 0.0) for k in stages], tb4[m]["total"]] for m in ("B.2", "ReSTIR")],
-            ))
-    results["wall_seconds"] = time.perf_counter() - t_start
-    (out / "results.json").write_text(json.dumps(results, indent=1))
-    (out / "tables.md").write_text("\n\n".join(tables) + "\n")
-    _plots(results, out)
-    print(f"wrote {out}/results.json, tables.md and plots ({results['wall_seconds']:.0f} s)")
+def tables(results: dict[str, Any]) -> str:
+    """The suite's Markdown: per scene the method table and the per-stage costs, then the
+    overview across scenes."""
+    cfg = results["config"]
+    spp = cfg["spp"]
+    lines = [
+        f"### ReSTIR benchmark ({cfg['resolution']}², {spp} spp, M = {cfg['candidates']}, burn-in {cfg['burn_in']}, "
+        f"floor oracle: RIS over {cfg['oracle_candidates']} shadowed candidates, no reuse)",
+        "",
+        (f"Gradient error: RMS over {cfg['grad_steps']} steps of ||g − g_ref|| / ||g_ref|| at the grey texture (fixed L2 adjoint; "
+         f"g_ref: prb at {cfg['ref_spp']} spp). Floor: the oracle at the same seeds and spp (same camera rays); light part = "
+         "sqrt(max(e² − floor², 0)). Equal time: every method's spp raised to the seconds per step of the slower ReSTIR variant "
+         "at equal samples, burn-in charged over the gradient steps; gain = the best baseline's equal-time error / the method's; "
+         "'of possible' = the best baseline's error / the floor under the method (the most any light sampler can gain). "
+         f"Reconstruction: the trainer, Adam lr {cfg['lr']}, L2, {spp} spp for every method, the slower ReSTIR's wall time "
+         f"for {cfg['recon_steps']} steps (burn-in included) for all; texture RMSE after it, median of {cfg['recon_seeds']} seed(s); "
+         f"the samplers' gradient paths: {', '.join(cfg['grad_paths'])} (the main table: {cfg['grad_paths'][0]}; shared paths "
+         "correlate the image and its gradient, a bias of the L2 loss that grows with the image noise, spec D5; direct (prb) "
+         "always uses decorrelated paths)."),
+    ]
+    overview = []
+    for name, scene in results["scenes"].items():
+        rows, best = scene["rows"], scene["best_baseline"]
+        recon = "recon_rmse" in rows[METHODS[0]]
+        ref = scene["reference"]
+        lines += ["", f"#### {name}", "",
+                  (f"Floor at {spp} spp: {_fmt(rows[ORACLE]['floor'])}; reference relative SE {_fmt(ref['relative_se'])} (in "
+                   f"every error, in quadrature); best baseline at equal time: {best}; equal-time budget "
+                   f"{_fmt(scene['calibration']['budget_seconds'])} s/step ({scene['calibration']['budget_method']})."
+                   + (" Warning: the reference's noise is over a third of the floor: raise --ref-spp." if ref["relative_se"] > rows[ORACLE]["floor"] / 3 else "")),
+                  ""]
+        header = ["method", f"relerr ({spp} spp)", "floor", "light part", "relerr eq. time", "spp eq. time", "s/step eq. time (burn-in charged)",
+                  "gain vs best baseline (eq. time)"]
+        if recon:
+            header += [f"recon RMSE (eq. wall time, {rows[METHODS[0]]['recon_grad_paths']})", "recon steps", "x best baseline's RMSE"]
+        header += [f"s/step ({spp} spp)", "x B.2 step"]
+        if recon:
+            header += ["train s/step", "x direct train step"]
+        body = []
+        for m in (*METHODS, ORACLE):
+            r = rows[m]
+            line = [m, r["relerr_equal_samples"], r["floor"], r["light"], r["relerr_equal_time"], r["spp_equal_time"],
+                    r["seconds_equal_time"], gain_text(r, best, m)]
+            if recon:
+                line += [r["recon_rmse"], r["recon_steps"], r["recon_ratio_to_best_baseline"]] if m != ORACLE else [None] * 3
+            line += [r["seconds_per_step"], r["step_ratio_to_B.2"]]
+            if recon:
+                line += [r.get("train_step_seconds"), r.get("train_step_ratio_to_direct")] if m != ORACLE else [None, None]
+            body.append(line)
+        lines += _table(header, body)
+        extra = scene.get("unfrozen_stages") or {}
+        stage_rows = [(m, rows[m]) for m in (*METHODS, ORACLE)] + list(extra.items())
+        present = [st for st in STAGES if any(st in r["stages"] for _, r in stage_rows)]
+        lines += ["", f"Cost per stage at {spp} spp (seconds per step: median of gradient steps 2..{cfg['grad_steps']}, "
+                  "without the burn-in, which is given once; stages: medians of the integrator's timers (pass: a frozen "
+                  "resampling pass, replayed by dr.freeze, has one timer; the rows marked unfrozen show where its time goes "
+                  "when traced); other: the rest of the step, e.g. the torch/Dr.Jit boundary):", ""]
+        lines += _table(["method", "s/step", "burn-in (once)", *present, "other", "x B.2 step"],
+                        [[m, r["seconds_per_step"], r.get("burn_in_seconds") if m in RESTIRS else None,
+                          *[r["stages"].get(st) for st in present], r["stages"].get("other"),
+                          r["seconds_per_step"] / rows["B.2"]["seconds_per_step"]] for m, r in stage_rows])
+        modes = scene.get("reconstruction_summary") or {}
+        if len(modes) > 1:
+            lines += ["", "Reconstruction by the samplers' gradient paths (texture RMSE after the equal wall time; steps; "
+                      "x the best baseline's RMSE in that mode):", ""]
+            lines += _table(["method", *[f"{mode}: RMSE (steps)" for mode in modes], *[f"{mode}: x best baseline" for mode in modes],
+                             *[f"{mode}: train s/step" for mode in modes]],
+                            [[m, *[f"{_fmt(v['rows'][m]['recon_rmse'])} ({_fmt(v['rows'][m]['recon_steps'])})" for v in modes.values()],
+                              *[v["rows"][m]["recon_ratio_to_best_baseline"] for v in modes.values()],
+                              *[v["rows"][m]["train_step_seconds"] for v in modes.values()]] for m in METHODS])
+        for m in RESTIRS:
+            overview.append([name, m, rows[ORACLE]["floor"], rows[m]["relerr_equal_samples"], rows["B.2"]["relerr_equal_samples"],
+                             f"{best} {_fmt(rows[best]['relerr_equal_time'])}", gain_text(rows[m], best, m),
+                             1.0 / rows[m]["recon_ratio_to_best_baseline"] if recon else None,
+                             rows[m]["step_ratio_to_B.2"], rows[m].get("train_step_ratio_to_direct")])
+    lines += ["", "#### Overview", ""]
+    lines += _table(["scene", "method", f"floor ({spp} spp)", f"relerr ({spp} spp)", f"B.2 ({spp} spp)", "best baseline eq. time",
+                     "gain (eq. time)", "recon: best baseline RMSE / method's", "step / B.2 step", "train step / direct train step"], overview)
+    if results.get("skipped_scenes"):
+        lines += ["", f"Default scenes not run: {', '.join(results['skipped_scenes'])}."]
+    return "\n".join(lines) + "\n"
 
 
-def _plots(results: dict, out: Path) -> None:
+# ---------------------------------------------------------------------------------- plots
+def plot_results(results: dict[str, Any], out: Path) -> list[Path]:
+    """``gradient_<scene>.png``: gradient error against seconds per step (each method at equal
+    samples and equal time, joined; the floor oracle as crosses, the floor at ``--spp`` dotted);
+    ``reconstruction_<scene>.png``: texture RMSE against training wall time."""
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        return
-    fig, axes = plt.subplots(1, len(results["T-B1"]), figsize=(5 * len(results["T-B1"]), 3.5), squeeze=False)
-    for ax, (pdf, tb1) in zip(axes[0], results["T-B1"].items()):
-        labels = list(tb1)
-        ax.bar(range(len(labels)), [tb1[k]["relerr"] for k in labels], yerr=[tb1[k]["relerr_sd"] for k in labels])
-        ax.set_xticks(range(len(labels)), labels, rotation=30, ha="right", fontsize=7)
-        ax.set_ylabel("gradient relative error")
-        ax.set_title(f"T-B1, emitter pdf {pdf}")
-    fig.tight_layout()
-    fig.savefig(out / "gradient_error.png", dpi=120)
-    plt.close(fig)
-    if results["T-B2"]:
-        fig, axes = plt.subplots(2, len(results["T-B2"]), figsize=(5 * len(results["T-B2"]), 7), squeeze=False)
-        for j, (mode, tb2) in enumerate(results["T-B2"].items()):
-            for label, v in tb2.items():
-                axes[0][j].plot(v["curve"], label=label)
-                axes[1][j].plot(v["curve_t"], v["curve"], label=label)
-            axes[0][j].set(xlabel="step", ylabel="albedo RMSE", title=f"T-B2 ({mode})", yscale="log")
-            axes[1][j].set(xlabel="seconds", ylabel="albedo RMSE", yscale="log")
-            axes[0][j].legend(fontsize=7)
+        return []
+    colours = {m: plt.get_cmap("tab10")(i) for i, m in enumerate(METHODS)}
+    written = []
+    for name, scene in results["scenes"].items():
+        fig, ax = plt.subplots(figsize=(6.5, 4.5))
+        for m in METHODS:
+            pts = sorted((r["charged_seconds_per_step"], r["relerr"], r["spp"]) for r in scene["gradient_runs"] if r["method"] == m)
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", color=colours[m], label=m)
+            for x, y, s in pts:
+                ax.annotate(f"{s}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
+        oracle = [(r["charged_seconds_per_step"], r["relerr"], r["spp"]) for r in scene["gradient_runs"] if r["method"] == ORACLE]
+        ax.plot([p[0] for p in oracle], [p[1] for p in oracle], "kx", markersize=8, label=f"{ORACLE}; dotted: at {results['config']['spp']} spp")
+        for x, y, s in oracle:
+            ax.annotate(f"{s}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
+        ax.axhline(scene["rows"][ORACLE]["floor"], color="k", linestyle=":", linewidth=1)
+        ax.set(xscale="log", yscale="log", xlabel="seconds per step (ReSTIR: burn-in charged)", ylabel="gradient relative error (RMS)",
+               title=f"{name}: gradient error vs cost (labels: spp)")
+        ax.legend(fontsize=7)
         fig.tight_layout()
-        fig.savefig(out / "reconstruction.png", dpi=120)
+        path = out / f"gradient_{name}.png"
+        fig.savefig(path, dpi=110)
         plt.close(fig)
+        written.append(path)
+        modes = scene.get("reconstruction") or {}
+        if modes:
+            fig, axes = plt.subplots(1, len(modes), figsize=(6.5 * len(modes), 4.5), squeeze=False)
+            for ax, (mode, runs) in zip(axes[0], modes.items()):
+                for r in runs:
+                    ax.plot(r["elapsed"], r["param_error"], color=colours[r["method"]], alpha=0.85,
+                            label=r["method"] if r["seed"] == 0 else None)
+                ax.set(yscale="log", xlabel="training wall time (s)", ylabel="texture RMSE",
+                       title=f"{name}: reconstruction vs wall time ({mode} paths)")
+                ax.legend(fontsize=7)
+            fig.tight_layout()
+            path = out / f"reconstruction_{name}.png"
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+            written.append(path)
+    return written
+
+
+# ----------------------------------------------------------------------------------- main
+def run_scene(name: str, a: argparse.Namespace) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    problem = make_problem(name, a)
+    ref_seconds = problem.ref_seconds
+    print(f"[restir] {name}: reference ({a.ref_spp} spp, relative SE {problem.ref_relative_se:.4f}) in {problem.ref_seconds:.1f} s", flush=True)
+    warm_up(problem, a)
+    runs = gradient_runs(problem, a, [(m, a.spp) for m in (*METHODS, ORACLE)])  # equal samples
+    cal = calibrate(problem, a, runs)
+    spp_eq = cal["equal_time_spp"]
+    print(f"[restir] {name}: budget {cal['budget_seconds']:.4f} s/step ({cal['budget_method']}); equal-time spp {spp_eq} "
+          f"({time.perf_counter() - t0:.1f} s)", flush=True)
+    equal_time = [(m, spp_eq[m]) for m in METHODS] + [(ORACLE, spp_eq[m]) for m in RESTIRS]  # the floor under each ReSTIR
+    runs += gradient_runs(problem, a, [k for k in equal_time if k[1] != a.spp])
+    unfrozen = stage_breakdown(problem, a)
+    print(f"[restir] {name}: gradient runs done ({time.perf_counter() - t0:.1f} s)", flush=True)
+    key, texture, ref_se = problem.key, list(problem.grey.shape), problem.ref_relative_se
+    del problem  # free its Mitsuba scene: the trainer's scenes reuse its Dr.Jit instance ids (see reconstruction)
+    gc.collect()
+    recon = None if a.no_reconstruction else reconstruction(name, key, a, cal["budget_method"])
+    summary = summarize_scene(runs, a.spp, cal["equal_time_spp"], recon)
+    return {"key": key, "texture_shape": texture, "reference": {"spp": a.ref_spp, "relative_se": ref_se, "seconds": ref_seconds}, "calibration": cal,
+            "gradient_runs": runs, "reconstruction": recon or {}, **summary, "unfrozen_stages": unfrozen,
+            "seconds": time.perf_counter() - t0}
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    a = parse_args(argv)
+    import torchir
+
+    torchir.backend.set_variant("auto")
+    _quiet()
+    from . import environment
+
+    scenes, skipped = resolve_scenes(a.scenes, a.quick)
+    if skipped:
+        print(f"[restir] default scenes not run{' (--quick runs one)' if a.quick else ' (not built in)'}: {', '.join(skipped)}", flush=True)
+    if not scenes:
+        raise SystemExit("no scene to run")
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    results: dict[str, Any] = {"config": vars(a), "environment": environment(), "scenes": {}, "skipped_scenes": skipped}
+    for name in scenes:
+        results["scenes"][name] = run_scene(name, a)
+        results["wall_seconds"] = time.perf_counter() - started
+        (out / "results.json").write_text(json.dumps({**results, "complete": False}, indent=1))  # a long run's scenes so far
+    results["complete"] = True
+    text = tables(results)
+    print("\n" + text, flush=True)
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    (out / "tables.md").write_text(text)
+    (out / "summary.md").write_text(text)
+    plots = plot_results(results, out)
+    print(f"wrote {out}/results.json, tables.md, summary.md and {len(plots)} plot(s) ({results['wall_seconds']:.0f} s)", flush=True)
 
 
 if __name__ == "__main__":

@@ -7,14 +7,25 @@ reconstruction filter so pixel-subset renders define the same pixels as full ren
 Example:
     >>> import torchir
     >>> sorted(torchir.scenes.available())
-    ['cbox', 'glossy_ball', 'glossy_highlight', 'multiview', 'oxalis_lite', 'painting', 'textured_wall']
+    ['ajar_painting', 'cbox', 'glossy_ball', 'glossy_highlight', 'many_lights', 'multiview', 'occluded_lights', 'oxalis_lite', 'painting', 'textured_wall']
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from . import cbox, glossy_ball, glossy_highlight, multiview, oxalis_lite, painting, textured_wall
+from . import (
+    ajar_painting,
+    cbox,
+    glossy_ball,
+    glossy_highlight,
+    many_lights,
+    multiview,
+    occluded_lights,
+    oxalis_lite,
+    painting,
+    textured_wall,
+)
 
 __all__ = ["available", "get", "BuiltinScene"]
 
@@ -37,6 +48,9 @@ _REGISTRY = {
         BuiltinScene("textured_wall", textured_wall.DESCRIPTION, textured_wall.build, textured_wall.PARAMETERS),
         BuiltinScene("glossy_highlight", glossy_highlight.DESCRIPTION, glossy_highlight.build, glossy_highlight.PARAMETERS),
         BuiltinScene("oxalis_lite", oxalis_lite.DESCRIPTION, oxalis_lite.build, oxalis_lite.PARAMETERS),
+        BuiltinScene("ajar_painting", ajar_painting.DESCRIPTION, ajar_painting.build, ajar_painting.PARAMETERS),
+        BuiltinScene("occluded_lights", occluded_lights.DESCRIPTION, occluded_lights.build, occluded_lights.PARAMETERS),
+        BuiltinScene("many_lights", many_lights.DESCRIPTION, many_lights.build, many_lights.PARAMETERS),
     )
 }
 
