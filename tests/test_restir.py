@@ -131,7 +131,7 @@ def test_reuse_chains_unbiased(oxalis, reference, nn_backend, target):
     means: 11 degrees of freedom; a 4 se bound has a false-alarm rate < 0.3 % even for a
     t-distribution with that few)."""
     ref, _, ref_mean_se = reference
-    chains = _chains(oxalis, 12, 10, 2, candidates=4, burn_in=4, nn_backend=nn_backend, target=target)
+    chains = _chains(oxalis, 12, 10, 2, candidates=4, neighbors=4, burn_in=4, nn_backend=nn_backend, target=target)
     assert np.isfinite(chains).all()
     ratio, se = _mean_ratio_and_se(chains, ref)
     bound = 4 * math.hypot(se, ref_mean_se)
@@ -631,12 +631,12 @@ def test_documented_defaults(oxalis):
     """The parameter table of ``integrators/restir_di.py`` and ReSTIRSampler's signature: the M
     cap is 2 x candidates unless set (spec D2's 20 x keeps stale samples too long)."""
     i = ReSTIRSampler(oxalis).integrator
-    assert (i.candidates, i.neighbors, i.m_cap, i.burn_in, i.normal_threshold) == (8, 4, 16.0, 32, 0.9)
+    assert (i.candidates, i.neighbors, i.m_cap, i.burn_in, i.normal_threshold) == (16, 8, 32.0, 32, 0.9)
     assert (i.temporal, i.spatial, i.grad_paths, i.forward_only) == (True, True, "shared", False)
     assert (i.target, i.freeze, i.nn_backend) == ("shadowed", True, "auto")
     assert ReSTIRSampler(oxalis, candidates=3).integrator.m_cap == 6.0
     assert ReSTIRSampler(oxalis, candidates=3, m_cap=7).integrator.m_cap == 7.0
-    assert "m_cap=16," in repr(ReSTIRSampler(oxalis))
+    assert "m_cap=32," in repr(ReSTIRSampler(oxalis))
     from torchir.integrators import register
 
     register()

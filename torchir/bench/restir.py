@@ -93,7 +93,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                    help=f"comma-separated built-in scenes (default: those of {','.join(DEFAULT_SCENES)} that exist; quick: the first)")
     p.add_argument("--resolution", type=int, default=None, help="film size (default 128, quick 32)")
     p.add_argument("--spp", type=int, default=1, help="samples per pixel of ReSTIR and of every method at equal samples")
-    p.add_argument("--candidates", type=int, default=8, help="M of B.2 and ReSTIR")
+    p.add_argument("--candidates", type=int, default=16, help="M of B.2 and ReSTIR (the sampler default)")
     p.add_argument("--oracle-candidates", type=int, default=256, help="candidates of the floor oracle (>= 256, spec §5.1)")
     p.add_argument("--burn-in", type=int, default=None, help="ReSTIR burn-in passes, charged to ReSTIR (default 32, quick 8)")
     p.add_argument("--nn-backend", default="auto", choices=("auto", "kdtree", "grid", "screen"))

@@ -69,8 +69,8 @@ class ReSTIRSampler:
     def __init__(
         self,
         scene: Scene,
-        candidates: int = 8,
-        neighbors: int = 4,
+        candidates: int = 16,
+        neighbors: int = 8,
         radius: float | None = None,
         m_cap: int | None = None,
         temporal: bool = True,
