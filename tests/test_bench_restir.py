@@ -9,7 +9,9 @@ import statistics
 import pytest
 
 from torchir.bench import SUITES
-from torchir.bench.restir import BASELINES, METHODS, ORACLE, RESTIRS, equal_time_spp, parse_args, resolve_scenes, summarize_scene, tables
+from torchir.bench.restir import (
+    BASELINES, METHODS, ORACLE, ORACLE_LOW, RESTIRS, camera_floor, equal_time_spp, parse_args, resolve_scenes, summarize_scene, tables,
+)
 
 QUICK_SCENE = "oxalis_lite"  # always built in; the default quick scene (ajar_painting) may change under other work
 
@@ -88,7 +90,12 @@ def test_quick_run_floor_is_below_b2_at_equal_samples(quick):
     se = statistics.stdev(d) / math.sqrt(len(d))
     assert statistics.fmean(d) >= -4 * se
     rows = scene["rows"]
-    assert rows[ORACLE]["floor"] == pytest.approx(math.sqrt(statistics.fmean([y * y for y in oracle])))
+    ref_sq = scene["reference"]["relative_se"] ** 2
+    corrected = {m: math.sqrt(max(statistics.fmean([y * y - ref_sq for y in runs[(m, 1)]["relerr_steps"]]), 0.0))
+                 for m in (ORACLE_LOW, ORACLE)}
+    cfg = results["config"]
+    assert rows[ORACLE]["floor"] == pytest.approx(
+        camera_floor(corrected[ORACLE_LOW], cfg["oracle_low"], corrected[ORACLE], cfg["oracle_candidates"]))
     assert rows[ORACLE]["floor"] <= rows["B.2"]["relerr_equal_samples"] + 4 * se / (2 * rows["B.2"]["relerr_equal_samples"])
 
 
@@ -173,7 +180,12 @@ def test_equal_time_spp_line_through_the_probes_and_limits():
 
 def test_options_and_default_scenes():
     q, full = parse_args(["--quick"]), parse_args([])
-    assert (q.resolution, q.spp, full.resolution, full.spp, full.burn_in, full.oracle_candidates) == (32, 1, 128, 1, 32, 256)
+    assert (q.resolution, q.spp, full.resolution, full.spp, full.burn_in) == (32, 1, 128, 1, 32)
+    assert (full.oracle_low, full.oracle_candidates) == (256, 1024)
+    one = parse_args(["--oracle-candidates", "512"])
+    assert (one.oracle_low, one.oracle_candidates) == (None, 512)
+    with pytest.raises(SystemExit):
+        parse_args(["--oracle-candidates", "1,2,3"])
     assert full.grad_steps > q.grad_steps and full.recon_steps > q.recon_steps
     import torchir
 
@@ -182,3 +194,12 @@ def test_options_and_default_scenes():
     assert resolve_scenes("oxalis_lite, cbox")[0] == ["oxalis_lite", "cbox"]
     with pytest.raises(ValueError, match="unknown scene"):
         resolve_scenes("nope")
+
+
+def test_camera_floor_extrapolates_the_oracles():
+    """e(M)² = floor² + L / M: two oracles give the floor exactly; one gives its own error."""
+    floor, light = 0.01, 1.0
+    e = {m: math.sqrt(floor**2 + light / m) for m in (256, 1024)}
+    assert camera_floor(e[256], 256, e[1024], 1024) == pytest.approx(floor)
+    assert camera_floor(None, None, e[1024], 1024) == e[1024]
+    assert camera_floor(0.07, 256, 0.03, 1024) == 0.0  # noise that makes the extrapolation negative: 0, not NaN

@@ -75,15 +75,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["BASELINES", "METHODS", "ORACLE", "RESTIRS", "main", "parse_args", "plot_results", "summarize_scene", "tables"]
+__all__ = ["BASELINES", "METHODS", "ORACLE", "ORACLE_LOW", "RESTIRS", "camera_floor", "main", "parse_args", "plot_results", "summarize_scene", "tables"]
 
 DEFAULT_SCENES = ("ajar_painting", "many_lights", "oxalis_lite")
 BASELINES = ("direct", "B.1", "B.2")
 RESTIRS = ("ReSTIR (shadowed)", "ReSTIR (unshadowed)")
 METHODS = (*BASELINES, *RESTIRS)
-ORACLE = "floor (oracle)"
+ORACLE = "floor (oracle)"  # RIS over the larger --oracle-candidates count
+ORACLE_LOW = "oracle (fewer candidates)"  # the smaller count: with ORACLE, extrapolates the floor
 STAGES = ("pass", "ris", "nn", "combine", "develop", "backward")  # "pass": a frozen (dr.freeze) pass has one timer
 BOUNDS = [0.001, 1.0]
+REFERENCE_BATCHES = 16  # the reference gradient's batches: their spread gives its own error
 
 
 # ------------------------------------------------------------------------------- options
@@ -94,7 +96,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--resolution", type=int, default=None, help="film size (default 128, quick 32)")
     p.add_argument("--spp", type=int, default=1, help="samples per pixel of ReSTIR and of every method at equal samples")
     p.add_argument("--candidates", type=int, default=16, help="M of B.2 and ReSTIR (the sampler default)")
-    p.add_argument("--oracle-candidates", type=int, default=256, help="candidates of the floor oracle (>= 256, spec §5.1)")
+    p.add_argument("--oracle-candidates", default="256,1024",
+                   help="two candidate counts M1 < M2 of the floor oracle (RIS, no reuse, >= 256, spec §5.1): the floor is "
+                        "extrapolated to M -> infinity from e² = floor² + L/M (one count: that oracle's error)")
     p.add_argument("--burn-in", type=int, default=None, help="ReSTIR burn-in passes, charged to ReSTIR (default 32, quick 8)")
     p.add_argument("--nn-backend", default="auto", choices=("auto", "kdtree", "grid", "screen"))
     p.add_argument("--grad-steps", type=int, default=None, help="gradient steps per method (default 32, quick 8)")
@@ -126,6 +130,13 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     a.grad_paths = [m.strip() for m in (a.grad_paths or ("shared" if q else "shared,decorrelated")).split(",") if m.strip()]
     if not a.grad_paths or any(m not in ("shared", "decorrelated") for m in a.grad_paths):
         p.error("--grad-paths takes shared and/or decorrelated")
+    try:
+        counts = sorted({int(v) for v in str(a.oracle_candidates).split(",") if v.strip()})
+    except ValueError:
+        p.error("--oracle-candidates takes one or two integers, e.g. 256,1024")
+    if not 1 <= len(counts) <= 2 or counts[0] < 1:
+        p.error("--oracle-candidates takes one or two positive integers, e.g. 256,1024")
+    a.oracle_low, a.oracle_candidates = counts[0] if len(counts) == 2 else None, counts[-1]
     for name in ("resolution", "spp", "candidates", "oracle_candidates", "cal_steps", "max_spp", "recon_steps", "recon_seeds", "target_spp"):
         if getattr(a, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1")
@@ -163,6 +174,8 @@ def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None
         return {"preset": "b2", "candidates": a.candidates}
     if method == ORACLE:
         return {"preset": "b2", "candidates": a.oracle_candidates}
+    if method == ORACLE_LOW:
+        return {"preset": "b2", "candidates": a.oracle_low}
     if method in RESTIRS:
         target = "unshadowed" if "unshadowed" in method else "shadowed"
         return {"candidates": a.candidates, "burn_in": a.burn_in, "target": target, "nn_backend": a.nn_backend}
@@ -229,19 +242,36 @@ def make_problem(name: str, a: argparse.Namespace) -> Problem:
     at_grey = render(scene, {key: grey}, spp=a.ref_spp, seed=2)
     adjoint = (2.0 * (at_grey - target) / at_grey.numel()).detach()  # d(L2)/dI at the grey texture
     batches = []
-    for b in range(4):
+    n_batches = REFERENCE_BATCHES
+    for b in range(n_batches):
         t = grey.clone().requires_grad_()
-        (render(scene, {key: t}, spp=a.ref_spp // 4, seed=3 + b) * adjoint).sum().backward()
+        (render(scene, {key: t}, spp=max(1, a.ref_spp // n_batches), seed=3 + b) * adjoint).sum().backward()
         batches.append(t.grad)
     g = torch.stack(batches)
     g_ref = g.mean(0)
-    relative_se = float(g.std(0).norm() / 2.0 / g_ref.norm())  # SE of the 4-batch mean: sd / sqrt(4)
+    # relative error of the batch mean: ||sd|| / sqrt(batches) (15 degrees of freedom)
+    relative_se = float(g.std(0).norm() / math.sqrt(n_batches) / g_ref.norm())
     return Problem(name, scene, key, grey, adjoint, g_ref, relative_se, time.perf_counter() - started)
+
+
+def oracles(a: argparse.Namespace) -> tuple[str, ...]:
+    return (ORACLE,) if a.oracle_low is None else (ORACLE_LOW, ORACLE)
+
+
+def camera_floor(e_low: float | None, m_low: int | None, e_high: float, m_high: int) -> float:
+    """The error left with perfect light sampling: ``e(M)² = floor² + L / M`` for RIS over M
+    independent candidates (light variance falls as 1/M), solved from two oracles; with one
+    oracle, its error (an upper bound: at 256 candidates B.2 over 8 can look at most
+    sqrt(256 / 8) = 5.7x worse however hard the lighting)."""
+    if e_low is None or m_low is None:
+        return e_high
+    floor_sq = (m_high * e_high**2 - m_low * e_low**2) / (m_high - m_low)
+    return math.sqrt(max(floor_sq, 0.0))
 
 
 def warm_up(problem: Problem, a: argparse.Namespace) -> None:
     """Compile every method's kernels (and the burn-in's) before anything is timed."""
-    for method in (*METHODS, ORACLE):
+    for method in (*METHODS, *oracles(a)):
         problem.step(problem.sampler(method, a, burn_in=1), a.spp, 90_000)  # burn-in pass, then a reuse step
 
 
@@ -369,14 +399,15 @@ def gradient_runs(problem: Problem, a: argparse.Namespace, keys: list[tuple[str,
             r["seconds"].append(seconds)
             r["stage_steps"].append(_stages(diag, seconds))
     out = []
+    ref_sq = problem.ref_relative_se**2
     for k in keys:
         r = runs.pop(k)
-        squares = [e * e for e in r["relerr_steps"]]
+        squares = [e * e - ref_sq for e in r["relerr_steps"]]  # the reference's own error removed
         step = statistics.median(r["seconds"])
         stages = _median_stages(r["stage_steps"])
         out.append({
             "method": r["method"], "spp": r["spp"], "relerr_steps": r["relerr_steps"],
-            "relerr": math.sqrt(statistics.fmean(squares)),  # RMS over steps: squared errors add
+            "relerr": math.sqrt(max(statistics.fmean(squares), 0.0)),  # RMS over steps: squared errors add
             "relerr_sq_se": statistics.stdev(squares) / math.sqrt(len(squares)),
             "seconds_per_step": step, "burn_in_seconds": r["burn_in"],
             "charged_seconds_per_step": step + r["burn_in"] / a.grad_steps, "stages": stages,
@@ -493,7 +524,8 @@ def _median(values: Sequence[float]) -> float:
 
 
 def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int],
-                    recon: dict[str, list[dict[str, Any]]] | None = None) -> dict[str, Any]:
+                    recon: dict[str, list[dict[str, Any]]] | None = None,
+                    oracle_candidates: tuple[int | None, int] = (None, 256)) -> dict[str, Any]:
     """One row per method (and the floor oracle) from the gradient runs and training runs.
 
     Row fields: ``relerr_equal_samples``, ``floor`` (the oracle at ``spp``), ``light``
@@ -509,7 +541,11 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
     (RMSE / the best baseline's), and the rows carry the first mode's (``recon_grad_paths``).
     Also returns ``best_baseline`` (equal time) and ``best_recon_baseline`` (first mode)."""
     by = {(r["method"], r["spp"]): r for r in runs}
-    floors = {s: r["relerr"] for (m, s), r in by.items() if m == ORACLE}
+    m_low, m_high = oracle_candidates
+    floors = {
+        s: camera_floor(by[(ORACLE_LOW, s)]["relerr"] if (ORACLE_LOW, s) in by else None, m_low, r["relerr"], m_high)
+        for (m, s), r in by.items() if m == ORACLE
+    }
     floor = floors[spp]
     rows: dict[str, dict[str, Any]] = {}
     for m in METHODS:
@@ -536,6 +572,9 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
                     "charged_seconds_per_step": oracle["charged_seconds_per_step"], "stages": oracle["stages"],
                     "step_ratio_to_B.2": oracle["seconds_per_step"] / rows["B.2"]["seconds_per_step"],
                     "charged_step_ratio_to_B.2": oracle["charged_seconds_per_step"] / rows["B.2"]["seconds_per_step"]}
+    rows[ORACLE]["oracle_errors"] = {str(m_high): oracle["relerr"]}
+    if (ORACLE_LOW, spp) in by:
+        rows[ORACLE]["oracle_errors"][str(m_low)] = by[(ORACLE_LOW, spp)]["relerr"]
     out: dict[str, Any] = {"rows": rows, "best_baseline": best, "floors": {str(s): f for s, f in sorted(floors.items())}}
     if recon:
         out["reconstruction_summary"] = {}
@@ -578,6 +617,11 @@ def _table(header: list[str], rows: list[list[Any]]) -> list[str]:
     return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header), *["| " + " | ".join(_fmt(v) for v in row) + " |" for row in rows]]
 
 
+def _oracle_counts(cfg: dict[str, Any]) -> str:
+    low = cfg.get("oracle_low")
+    return f"{low} and {cfg['oracle_candidates']}" if low else str(cfg["oracle_candidates"])
+
+
 def gain_text(row: dict[str, Any], best: str, method: str) -> str:
     """``"gain 3.1x of possible 8.2x"`` (bound where the floor at that spp was measured)."""
     if row.get("gain") is None:
@@ -598,10 +642,12 @@ def tables(results: dict[str, Any]) -> str:
     spp = cfg["spp"]
     lines = [
         f"### ReSTIR benchmark ({cfg['resolution']}², {spp} spp, M = {cfg['candidates']}, burn-in {cfg['burn_in']}, "
-        f"floor oracle: RIS over {cfg['oracle_candidates']} shadowed candidates, no reuse)",
+        f"floor oracle: RIS over {_oracle_counts(cfg)} shadowed candidates, no reuse)",
         "",
         (f"Gradient error: RMS over {cfg['grad_steps']} steps of ||g − g_ref|| / ||g_ref|| at the grey texture (fixed L2 adjoint; "
-         f"g_ref: prb at {cfg['ref_spp']} spp). Floor: the oracle at the same seeds and spp (same camera rays); light part = "
+         f"g_ref: prb at {cfg['ref_spp']} spp; its own error, measured from {REFERENCE_BATCHES} batches, is removed in quadrature). "
+         "Floor: the camera-sampling floor, from the oracles at the same seeds and spp (same camera rays), extrapolated to "
+         "infinitely many candidates with e² = floor² + L/M (one oracle: its error, a bound that caps at sqrt(M_oracle / M)); light part = "
          "sqrt(max(e² − floor², 0)). Equal time: every method's spp raised to the seconds per step of the slower ReSTIR variant "
          "at equal samples, burn-in charged over the gradient steps; gain = the best baseline's equal-time error / the method's; "
          "'of possible' = the best baseline's error / the floor under the method (the most any light sampler can gain). "
@@ -617,7 +663,9 @@ def tables(results: dict[str, Any]) -> str:
         recon = "recon_rmse" in rows[METHODS[0]]
         ref = scene["reference"]
         lines += ["", f"#### {name}", "",
-                  (f"Floor at {spp} spp: {_fmt(rows[ORACLE]['floor'])}; reference relative SE {_fmt(ref['relative_se'])} (in "
+                  (f"Floor at {spp} spp: {_fmt(rows[ORACLE]['floor'])} (oracle errors: "
+                   + ", ".join(f"{m} candidates {_fmt(e)}" for m, e in sorted(rows[ORACLE].get("oracle_errors", {}).items(), key=lambda kv: int(kv[0])))
+                   + f"); reference relative SE {_fmt(ref['relative_se'])} (removed from "
                    f"every error, in quadrature); best baseline at equal time: {best}; equal-time budget "
                    f"{_fmt(scene['calibration']['budget_seconds'])} s/step ({scene['calibration']['budget_method']})."
                    + (" Warning: the reference's noise is over a third of the floor: raise --ref-spp." if ref["relative_se"] > rows[ORACLE]["floor"] / 3 else "")),
@@ -733,7 +781,7 @@ def run_scene(name: str, a: argparse.Namespace) -> dict[str, Any]:
     ref_seconds = problem.ref_seconds
     print(f"[restir] {name}: reference ({a.ref_spp} spp, relative SE {problem.ref_relative_se:.4f}) in {problem.ref_seconds:.1f} s", flush=True)
     warm_up(problem, a)
-    runs = gradient_runs(problem, a, [(m, a.spp) for m in (*METHODS, ORACLE)])  # equal samples
+    runs = gradient_runs(problem, a, [(m, a.spp) for m in (*METHODS, *oracles(a))])  # equal samples
     cal = calibrate(problem, a, runs)
     spp_eq = cal["equal_time_spp"]
     print(f"[restir] {name}: budget {cal['budget_seconds']:.4f} s/step ({cal['budget_method']}); equal-time spp {spp_eq} "
@@ -746,7 +794,7 @@ def run_scene(name: str, a: argparse.Namespace) -> dict[str, Any]:
     del problem  # free its Mitsuba scene: the trainer's scenes reuse its Dr.Jit instance ids (see reconstruction)
     gc.collect()
     recon = None if a.no_reconstruction else reconstruction(name, key, a, cal["budget_method"])
-    summary = summarize_scene(runs, a.spp, cal["equal_time_spp"], recon)
+    summary = summarize_scene(runs, a.spp, cal["equal_time_spp"], recon, (a.oracle_low, a.oracle_candidates))
     return {"key": key, "texture_shape": texture, "reference": {"spp": a.ref_spp, "relative_se": ref_se, "seconds": ref_seconds}, "calibration": cal,
             "gradient_runs": runs, "reconstruction": recon or {}, **summary, "unfrozen_stages": unfrozen,
             "seconds": time.perf_counter() - t0}

@@ -114,6 +114,9 @@ _OPTIONS = {
 }
 
 
+UNROLLED_CANDIDATES = 32  # more candidates: a symbolic loop (kernel size and compile time)
+
+
 def check_scene(scene: mi.Scene) -> None:
     """Raise ``ValueError`` for what ReSTIR DI does not handle (instead of wrong results)."""
     variant = mi.variant()
@@ -389,15 +392,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         le_vis = si.emitter(scene).eval(si, valid)
 
         # Streaming RIS over light candidates (Alg. A1; paper Eq. 4-6)
-        y = dr.zeros(LightSample(), n)
-        f_sel, phat_sel = dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n)
-        w_sum = dr.zeros(mi.Float, n)
-        for _ in range(self.candidates):
-            y_m, f_m, phat_m, w_m = sample_candidate(scene, si, sampler, valid, visibility=self.shadowed)
-            w_sum += w_m
-            take = valid & (sampler.next_1d(valid) * w_sum < w_m)  # no division (A1)
-            y = dr.select(take, y_m, y)
-            f_sel, phat_sel = dr.select(take, f_m, f_sel), dr.select(take, phat_m, phat_sel)
+        y, f_sel, phat_sel, w_sum = self._streaming_ris(scene, si, sampler, valid, n)
         if not self.shadowed:  # one shadow ray for the chosen candidate; W = 0 when occluded
             seen = _visible(scene, si, y, valid & (phat_sel > 0))
             w_sum, f_sel = dr.select(seen, w_sum, 0.0), dr.select(seen, f_sel, 0.0)
@@ -434,6 +429,34 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         dr.eval(image)
         tic("develop", t1)
         return ray_weight, image, r, n_ok
+
+    def _streaming_ris(self, scene, si, sampler, valid, n: int):
+        """``(y, f, p̂, w_sum)`` of streaming RIS over ``candidates`` light candidates (Alg. A1).
+        Up to ``UNROLLED_CANDIDATES`` the loop is unrolled into the kernel; beyond, a symbolic
+        loop keeps the kernel small (1024 unrolled candidates took minutes to compile)."""
+        y = dr.zeros(LightSample(), n)
+        f_sel, phat_sel = dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n)
+        w_sum = dr.zeros(mi.Float, n)
+
+        def candidate(y, f_sel, phat_sel, w_sum):
+            y_m, f_m, phat_m, w_m = sample_candidate(scene, si, sampler, valid, visibility=self.shadowed)
+            w_sum = w_sum + w_m
+            take = valid & (sampler.next_1d(valid) * w_sum < w_m)  # no division (A1)
+            return dr.select(take, y_m, y), dr.select(take, f_m, f_sel), dr.select(take, phat_m, phat_sel), w_sum
+
+        if self.candidates <= UNROLLED_CANDIDATES:
+            for _ in range(self.candidates):
+                y, f_sel, phat_sel, w_sum = candidate(y, f_sel, phat_sel, w_sum)
+            return y, f_sel, phat_sel, w_sum
+
+        def body(i, sampler_, y, f_sel, phat_sel, w_sum):
+            return (i + 1, sampler_, *candidate(y, f_sel, phat_sel, w_sum))
+
+        state = (dr.zeros(mi.UInt32, n), sampler, y, f_sel, phat_sel, w_sum)
+        _, _, y, f_sel, phat_sel, w_sum = dr.while_loop(
+            state, lambda i, *rest: i < self.candidates, body, labels=("i", "sampler", "y", "f", "phat", "w_sum")
+        )
+        return y, f_sel, phat_sel, w_sum
 
     def _combine(self, scene, sampler, r, f_sel, phat_sel, source, nbr, ok):
         """Bitterli's unbiased 1/Z combination with M capping (R6-R9; corrects Alg. P3, D1)."""
