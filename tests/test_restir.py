@@ -427,9 +427,11 @@ def test_screen_search_equals_kdtree_when_the_window_covers_the_radius(exclude_s
     q_valid = mi.Bool(rng.random(w * h * spp) < 0.9) if not exclude_self else valid
     want_idx, want_ok = NeighbourSearch("kdtree")(pts, valid, qs, q_valid, k, radius, exclude_self)
     assert 0.2 < np.mean([np.asarray(o).mean() for o in want_ok]) < 0.9  # the radius binds
-    for window, same in ((2, True), (1, False)):
+    per_query = {q: mi.UInt32(np.full(w * h * spp, q, np.uint32)) for q in (1, 2)}
+    cases = ((2, None, True), (1, None, False), (3, per_query[2], True), (3, per_query[1], False))
+    for window, windows, same in cases:  # windows: per-query half-widths, capped by the layout's
         idx, ok = NeighbourSearch("screen")(pts, valid, qs, q_valid, k, radius, exclude_self,
-                                            layout=ScreenLayout(w, h, spp, window))
+                                            layout=ScreenLayout(w, h, spp, window), windows=windows)
         equal = all(
             np.array_equal(np.asarray(o), np.asarray(wo)) and np.array_equal(np.asarray(i)[np.asarray(o)], np.asarray(wi)[np.asarray(wo)])
             for i, o, wi, wo in zip(idx, ok, want_idx, want_ok)

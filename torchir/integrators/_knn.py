@@ -182,35 +182,42 @@ def _insert_top_k(bd: list, bi: list, accept, dc, ic) -> None:
 
 
 def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: ScreenLayout, k: int,
-               radius: float, exclude_self: bool = False):
+               radius: float, exclude_self: bool = False, windows: mi.UInt32 | None = None):
     """k nearest valid ``points`` strictly closer than ``radius``, among the samples of the
-    pixels within ``layout.window`` of each query's pixel. ``points`` and ``queries`` both have
+    pixels within ``layout.window`` of each query's pixel (or within ``windows``, one
+    half-width per query, at most ``layout.window``). ``points`` and ``queries`` both have
     width ``width * height * spp`` in :class:`ScreenLayout` order; returns full-width columns
-    like :func:`knn_kdtree` (``index`` into ``points``)."""
+    like :func:`knn_kdtree` (``index`` into ``points``).
+
+    A sample ``w + 1`` pixels away lies more than ``w`` pixel footprints away, so a window of
+    ``ceil(radius / footprint)`` around a query finds every point within the radius."""
     w, h, spp, win = layout.width, layout.height, layout.spp, layout.window
     n = w * h * spp
     if dr.width(points) != n or dr.width(queries) != n:
         raise ValueError(f"knn_screen: points and queries must have {n} lanes ({w}x{h}x{spp}), got "
                          f"{dr.width(points)} and {dr.width(queries)}")
-    side = 2 * win + 1
-    count = side * side * spp
     lane = dr.arange(mi.UInt32, n)
+    if windows is None:
+        win_q = dr.full(mi.UInt32, win, n)
+    else:
+        win_q = dr.minimum(mi.UInt32(windows), win)
+    side_q = 2 * win_q + 1
+    count_q = side_q * side_q * spp
     pix = lane // spp
     qx, qy = mi.Int32(pix % w), mi.Int32(pix // w)
     r2 = dr.opaque(mi.Float, radius * radius)
     big = mi.UInt32(0xFFFFFFFF)
     w_o, h_o, spp_o = dr.opaque(mi.Int32, w), dr.opaque(mi.Int32, h), dr.opaque(mi.UInt32, spp)
-    side_o, win_o = dr.opaque(mi.UInt32, side), dr.opaque(mi.Int32, win)
 
     def cond(c, *best):
-        return c < count
+        return c < count_q
 
     def body(c, *best):
         bd, bi = list(best[:k]), list(best[k:])
         cell = c // spp_o
         s = c - cell * spp_o
-        cx = qx + mi.Int32(cell % side_o) - win_o
-        cy = qy + mi.Int32(cell // side_o) - win_o
+        cx = qx + mi.Int32(cell % side_q) - mi.Int32(win_q)
+        cy = qy + mi.Int32(cell // side_q) - mi.Int32(win_q)
         inside = (cx >= 0) & (cx < w_o) & (cy >= 0) & (cy < h_o)
         j = (mi.UInt32(cy * w_o + cx)) * spp_o + s
         accept = inside & dr.gather(mi.Bool, valid, j, inside)
@@ -279,21 +286,22 @@ class NeighbourSearch:
         return out + (("screen",) if layout is not None else ())
 
     def __call__(self, points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, q_valid: mi.Bool, k: int,
-                 radius: float, exclude_self: bool = False, layout: ScreenLayout | None = None):
+                 radius: float, exclude_self: bool = False, layout: ScreenLayout | None = None,
+                 windows: mi.UInt32 | None = None):
         if self.backend != "auto":
             backend = self.backend
             if backend == "screen" and layout is None:
                 backend = _default_backend()  # the sensor moved: no shared layout this step
-            return self._search(backend, points, valid, queries, q_valid, k, radius, exclude_self, layout)
+            return self._search(backend, points, valid, queries, q_valid, k, radius, exclude_self, layout, windows)
         key = layout is not None
         if key in self.chosen:
-            return self._search(self.chosen[key], points, valid, queries, q_valid, k, radius, exclude_self, layout)
+            return self._search(self.chosen[key], points, valid, queries, q_valid, k, radius, exclude_self, layout, windows)
         options = self.candidates(layout)
         backend = min(options, key=lambda b: (b in self._untimed, len(self.seconds[b])))
         dr.eval(points, valid, queries, q_valid)
         dr.sync_thread()
         start = time.perf_counter()
-        out = self._search(backend, points, valid, queries, q_valid, k, radius, exclude_self, layout)
+        out = self._search(backend, points, valid, queries, q_valid, k, radius, exclude_self, layout, windows)
         dr.eval(out)
         dr.sync_thread()
         if backend in self._untimed:
@@ -303,10 +311,10 @@ class NeighbourSearch:
             self.chosen[key] = min(options, key=lambda b: float(np.median(self.seconds[b])))
         return out
 
-    def _search(self, backend, points, valid, queries, q_valid, k, radius, exclude_self, layout):
+    def _search(self, backend, points, valid, queries, q_valid, k, radius, exclude_self, layout, windows=None):
         self.last = backend
         if backend == "screen":
-            idx, ok = knn_screen(points, valid, queries, layout, k, radius, exclude_self)
+            idx, ok = knn_screen(points, valid, queries, layout, k, radius, exclude_self, windows)
             ok = [o & q_valid for o in ok]
             return idx, ok
         n = dr.width(q_valid)

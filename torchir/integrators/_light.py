@@ -66,7 +66,12 @@ def shape_pointers(scene: mi.Scene, index: mi.UInt32, active: mi.Bool) -> mi.Sha
     return dr.gather(mi.ShapePtr, scene.shapes_dr(), index, active)
 
 
-def rebuild_interaction(scene: mi.Scene, r, active: mi.Bool) -> mi.SurfaceInteraction3f:
+# What the forward pass needs of a shading point: position, uv (textures) and shading frame;
+# no surface derivatives (the backward rebuilds with RayFlags.All, differentiably).
+FORWARD_FLAGS = mi.RayFlags.UV | mi.RayFlags.ShadingFrame
+
+
+def rebuild_interaction(scene: mi.Scene, r, active: mi.Bool, flags=mi.RayFlags.All) -> mi.SurfaceInteraction3f:
     """Rebuild the shading points of reservoirs ``r`` from (shape, prim, prim_uv) and their
     camera ray: meshes interpolate the *current* vertices with the stored barycentrics."""
     n = dr.width(r.t)
@@ -78,7 +83,7 @@ def rebuild_interaction(scene: mi.Scene, r, active: mi.Bool) -> mi.SurfaceIntera
     pi.prim_index = r.prim
     pi.prim_uv = r.prim_uv
     pi.shape_index = r.shape
-    return pi.compute_surface_interaction(mi.Ray3f(r.o, r.d), mi.RayFlags.All, active)
+    return pi.compute_surface_interaction(mi.Ray3f(r.o, r.d), flags, active)
 
 
 def eval_target(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool, visibility: bool = True):

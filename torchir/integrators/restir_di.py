@@ -93,7 +93,7 @@ import numpy as np
 from mitsuba.python.ad.integrators.common import RBIntegrator
 
 from . import _knn
-from ._light import LightSample, Reservoirs, eval_target, rebuild_interaction, sample_candidate
+from ._light import FORWARD_FLAGS, LightSample, Reservoirs, eval_target, rebuild_interaction, sample_candidate
 
 __all__ = ["ReSTIRDirectIntegrator", "check_scene", "StepCache"]
 
@@ -319,7 +319,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if st.radius <= 0:
             auto_radius, small_footprint = _footprints(scene, sensor_obj, seed, spp, w, h)
             st.radius = self.radius if self.radius > 0 else auto_radius
-            st.window = int(min(3, max(1, np.ceil(st.radius / small_footprint))))
+            st.window = int(min(3, max(1, np.ceil(st.radius / small_footprint))))  # the cap of the per-query windows
         source = "temporal" if self.temporal else ("spatial" if self.spatial else "none")
         if source == "temporal" and prev is None:
             source = "none"
@@ -387,7 +387,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         sampler.seed(seed, n)
         ray, ray_weight = _sample_rays(sensor_obj, sampler, spp, w, h)
         pi = scene.ray_intersect_preliminary(mi.Ray3f(ray), coherent=True)
-        si = pi.compute_surface_interaction(mi.Ray3f(ray), mi.RayFlags.All)
+        si = pi.compute_surface_interaction(mi.Ray3f(ray), FORWARD_FLAGS)
         valid = si.is_valid()
         le_vis = si.emitter(scene).eval(si, valid)
 
@@ -410,18 +410,21 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if source != "none":
             src = prev if source == "temporal" else r
             exclude_self = source == "spatial"
+            # screen window per query: ceil(radius / its pixel footprint), at most layout.window
+            footprint = pi.t * dr.norm(ray.d_x - ray.d)
+            windows = mi.UInt32(dr.clip(dr.ceil(radius / dr.select(footprint > 0, footprint, radius)), 1, 3))
             if timings is None:  # frozen: the screen search (pure Dr.Jit, no host copies)
-                nbr, ok = _knn.knn_screen(src.p, src.valid, r.p, layout, k, radius, exclude_self)
+                nbr, ok = _knn.knn_screen(src.p, src.valid, r.p, layout, k, radius, exclude_self, windows)
                 ok = [o & r.valid for o in ok]
             else:
                 nbr, ok = self._neighbour_search(src.p, src.valid, r.p, r.valid, k, radius,
-                                                 exclude_self=exclude_self, layout=layout)
+                                                 exclude_self=exclude_self, layout=layout, windows=windows)
             for i in range(len(ok)):  # the normal test (spec §3.6)
                 n_src = dr.gather(mi.Vector3f, src.n, nbr[i], ok[i])
                 ok[i] = ok[i] & (dr.dot(n_src, r.n) >= self.normal_threshold)
             dr.eval(nbr, ok)
             t2 = tic("nn", t1)
-            r, f_sel, phat_sel, n_ok = self._combine(scene, sampler, r, f_sel, phat_sel, src, nbr, ok)
+            r, f_sel, phat_sel, n_ok = self._combine(scene, sampler, si, r, f_sel, phat_sel, src, nbr, ok)
             dr.eval(r, f_sel, n_ok)
             t1 = tic("combine", t2)
         contrib = ray_weight * (le_vis + f_sel * r.W)  # (R16)
@@ -458,10 +461,9 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         )
         return y, f_sel, phat_sel, w_sum
 
-    def _combine(self, scene, sampler, r, f_sel, phat_sel, source, nbr, ok):
+    def _combine(self, scene, sampler, si, r, f_sel, phat_sel, source, nbr, ok):
         """Bitterli's unbiased 1/Z combination with M capping (R6-R9; corrects Alg. P3, D1)."""
-        valid = r.valid
-        si = rebuild_interaction(scene, r, valid)
+        valid = r.valid  # si: the lanes' own shading points (the pass's first hits)
         cap = mi.Float(self.m_cap)
         y, w_sum, m_sum = r.y, mi.Float(r.w_sum), mi.Float(r.M)  # w_0 = r_0.w_sum (R6)
         neighbours, m_caps = [], []
@@ -490,7 +492,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         # visible samples only (shadowed target, or W = 0 when occluded), so V is tested too.
         z = mi.Float(r.M)  # the fresh reservoir always counts (R8)
         for (r_i, ok_i), m_i in zip(neighbours, m_caps):
-            si_i = rebuild_interaction(scene, r_i, ok_i)  # the neighbour's surface point (§6.2)
+            si_i = rebuild_interaction(scene, r_i, ok_i, FORWARD_FLAGS)  # the neighbour's surface point (§6.2)
             _, phat_at_i = eval_target(scene, si_i, y, ok_i & (phat_sel > 0))
             z += dr.select(ok_i & (phat_at_i > 0), m_i, 0.0)
         good = (phat_sel > 0) & (z > 0)
