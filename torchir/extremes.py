@@ -278,6 +278,55 @@ def _loi_gradient(where: Callable[[torch.Tensor], torch.Tensor], sign: str) -> C
     return check
 
 
+def _restir_door_closed(**options: Any) -> Callable[[dict], Any]:
+    """``ajar_painting`` with the door shut and no fill light: every light candidate of every
+    shading point is occluded, every reservoir stays empty."""
+
+    def run(ctx: dict) -> Any:
+        import torchir
+        from torchir.functions import render
+        from torchir.samplers import ReSTIRSampler
+
+        scene = torchir.Scene.builtin("ajar_painting", resolution=8, texture=2, door=0.0, fill=0.0)
+        key = "painting.bsdf.reflectance.data"
+        texture = torch.full_like(scene.get(key), 0.5).requires_grad_()
+        sampler = ReSTIRSampler(scene, **{"burn_in": 2, "seed": 0, **options})
+        images = []
+        for step in range(3):
+            image = render(scene, {key: texture}, spp=1, seed=step, sampler=sampler)
+            (image * (1.0 + torch.rand_like(image))).sum().backward()  # a non-zero adjoint everywhere
+            images.append(image)
+        d = sampler.diagnostics()
+        return [*images, texture.grad, torch.tensor([float(d.get("max_W", 0.0)), float(d.get("mean_M", 0.0))])]
+
+    return run
+
+
+def _restir_light_on_after_burn_in(ctx: dict) -> Any:
+    """Burn-in and two steps with the light off, then a step with it on: the old (empty)
+    reservoirs are not reused for that step, the fresh candidates find the light."""
+    import torchir
+    from torchir.functions import render
+    from torchir.samplers import ReSTIRSampler
+
+    scene = torchir.Scene.builtin("cbox", resolution=8, max_depth=2)
+    red = torch.full((3,), 0.5, requires_grad=True)
+    sampler = ReSTIRSampler(scene, burn_in=2, seed=0)
+    off = {RED: red, LIGHT: torch.zeros(3)}
+    for step in range(2):
+        render(scene, off, spp=1, seed=step, sampler=sampler)
+    image = render(scene, {RED: red}, spp=1, seed=2, sampler=sampler)
+    image.sum().backward()
+    return [image, red.grad]
+
+
+def _lit_with_gradient(result: Any, ctx: dict) -> str | None:
+    image, grad = result
+    if not (torch.isfinite(image).all() and float(image.mean()) > 0 and torch.isfinite(grad).all() and float(grad.abs().sum()) > 0):
+        return "the light switched on must light the image and give a finite, non-zero albedo gradient"
+    return None
+
+
 def _restir_light_off(result: Any, ctx: dict) -> str | None:
     *images, grad, stats = result
     if any(torch.count_nonzero(t) for t in (*images, grad)) or float(stats[0]) != 0:
@@ -372,6 +421,9 @@ CASES: list[Case] = [
     Case("ReSTIRSampler", "light switched off (empty reservoirs)", _restir(light=0.0), check=_restir_light_off),
     Case("ReSTIRSampler", "1e6 radiance", _restir(light=1e6), check=_restir_scales_with_emission),
     Case("ReSTIRSampler", "zero albedo", _restir(albedo=0.0)),
+    Case("ReSTIRSampler", "every candidate occluded (door closed, no fill)", _restir_door_closed(), check=_restir_light_off),
+    Case("ReSTIRSampler", "every candidate occluded, unshadowed target", _restir_door_closed(target="unshadowed"), check=_restir_light_off),
+    Case("ReSTIRSampler", "light switched on after burn-in", _restir_light_on_after_burn_in, check=_lit_with_gradient),
     Case("ReSTIRSampler", "one candidate, no reuse (B.1)", _restir(preset="b1"), check=_restir_b1),
     Case("ReSTIRSampler", "light-position gradient (unsupported)", _trainer_step(scene="glossy_highlight", parameters={"light.azimuth": {"init": 0.5}}, sampler={"type": "restir"}), ValueError, "light parameter"),
     Case("ReSTIRSampler", "indirect light requested", lambda ctx: _restir_on_depth4(ctx), ValueError, "direct"),
