@@ -794,7 +794,7 @@ def test_oxalis_lite_emitter_pdf_option():
 def test_emitter_watch_flags_lights_that_come_on_or_move_only(oxalis):
     """Temporal reuse must stop for one step when a light comes on or moves (the support of
     the old reservoirs no longer covers its samples), not when lights dim or go off."""
-    from torchir.integrators.restir_di import EmitterWatch
+    from torchir.integrators._scene_watch import EmitterWatch
 
     scene = torchir.Scene.builtin("oxalis_lite", resolution=8, texture=2, dim_lights=2, hidden_lights=1)
     watch = EmitterWatch()
