@@ -203,3 +203,17 @@ def test_camera_floor_extrapolates_the_oracles():
     assert camera_floor(e[256], 256, e[1024], 1024) == pytest.approx(floor)
     assert camera_floor(None, None, e[1024], 1024) == e[1024]
     assert camera_floor(0.07, 256, 0.03, 1024) == 0.0  # noise that makes the extrapolation negative: 0, not NaN
+
+
+def test_sweep_script_parses_option_sets():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "sweep_restir.py"
+    spec = importlib.util.spec_from_file_location("sweep_restir", path)
+    sweep = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sweep)
+    assert sweep.keywords('burn_in=32,target="unshadowed",spp=2') == {"burn_in": 32, "target": "unshadowed", "spp": 2}
+    assert sweep.keywords("") == {}
+    with pytest.raises(ValueError):
+        sweep.keywords("candidates=__import__('os')")  # literals only

@@ -105,7 +105,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--cal-steps", type=int, default=None, help="timed steps per calibration probe (default 6, quick 2)")
     p.add_argument("--cal-rounds", type=int, default=None, help="calibration probes per method (default 3, quick 1)")
     p.add_argument("--max-spp", type=int, default=256, help="largest equal-time spp of a method")
-    p.add_argument("--ref-spp", type=int, default=None, help="spp of the reference gradient and images (default 4096, quick 1024)")
+    p.add_argument("--ref-spp", type=int, default=None, help="spp of the reference gradient and images (default 16384, quick 1024)")
     p.add_argument("--recon-steps", type=int, default=None, help="training steps of the budget's ReSTIR run (default 150, quick 10)")
     p.add_argument("--recon-seeds", type=int, default=1, help="reconstruction seeds (medians over them)")
     p.add_argument("--target-spp", type=int, default=None, help="spp of the trainer's target image (default 1024, quick 128)")
@@ -124,7 +124,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     a.grad_steps = a.grad_steps or (8 if q else 32)
     a.cal_steps = a.cal_steps or (2 if q else 6)
     a.cal_rounds = (1 if q else 3) if a.cal_rounds is None else a.cal_rounds
-    a.ref_spp = a.ref_spp or (1024 if q else 4096)
+    a.ref_spp = a.ref_spp or (1024 if q else 16384)
     a.recon_steps = a.recon_steps or (10 if q else 150)
     a.target_spp = a.target_spp or (128 if q else 1024)
     a.grad_paths = [m.strip() for m in (a.grad_paths or ("shared" if q else "shared,decorrelated")).split(",") if m.strip()]
