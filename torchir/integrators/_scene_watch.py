@@ -98,20 +98,26 @@ def as_tuples(value):
     return value
 
 
-def _values(v) -> np.ndarray:
+def _fingerprint(v) -> tuple:
+    """The value of a scene parameter as a tuple of floats (large arrays: size, sum and sum of
+    squares). Width-1 literals (a light's colour, a point light's position) are read without
+    numpy or a host sync: this runs for every light at every step (256 lights: 0.5 ms)."""
     if isinstance(v, (int, float)):
-        return np.array([float(v)])
+        return (float(v),)
     if "Transform" in type(v).__name__:  # (points have a .matrix too)
-        return np.asarray(v.matrix, dtype=np.float64).ravel()
-    if dr.width(v) == 1 and dr.depth_v(v) <= 2 and not dr.is_tensor_v(v):  # literals: no host sync
-        return np.array([float(v[i][0]) for i in range(dr.size_v(v))] if dr.depth_v(v) == 2 else [float(v[0])])
-    return np.asarray(v, dtype=np.float64).ravel()
+        return tuple(np.asarray(v.matrix, dtype=np.float64).ravel().tolist())
+    if not dr.is_tensor_v(v) and dr.width(v) == 1:
+        depth = dr.depth_v(v)
+        if depth == 2:
+            return tuple(float(c[0]) for c in v)
+        if depth == 1:
+            return (float(v[0]),)
+    vals = np.asarray(v, dtype=np.float64).ravel()
+    return tuple(vals.tolist()) if vals.size <= 16 else (vals.size, float(vals.sum()), float((vals * vals).sum()))
 
 
 def _any_nonzero(v) -> bool:
-    return bool(np.any(_values(v) != 0))
-
-
-def _fingerprint(v) -> tuple:
-    vals = _values(v)
-    return tuple(vals.tolist()) if vals.size <= 16 else (vals.size, float(vals.sum()), float((vals * vals).sum()))
+    values = _fingerprint(v)
+    if len(values) == 3 and isinstance(values[0], int):  # a large array: (size, sum, sum of squares)
+        return values[2] != 0
+    return any(x != 0 for x in values)

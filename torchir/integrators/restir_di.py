@@ -291,7 +291,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                 _, st.prev, burn = self.sample_paths(scene, sensor, burn_seed, spp, st.prev, st, st.camera)
                 st.camera = burn.camera
         t_burn = _tic() - t0
-        lights = self._emitter_watch(scene)
+        lights = self._emitter_watch(scene) if self.temporal else None  # only temporal reuse needs it
         prev, prev_camera = st.prev, st.camera
         if prev is not None and not self._emitter_watch.same_support(st.lights, lights):
             prev = None  # a light came on or moved: the old reservoirs cannot hold its samples
