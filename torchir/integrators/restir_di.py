@@ -466,7 +466,11 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         """Bitterli's unbiased 1/Z combination with M capping (R6-R9; corrects Alg. P3, D1)."""
         valid = r.valid  # si: the lanes' own shading points (the pass's first hits)
         cap = mi.Float(self.m_cap)
-        y, w_sum, m_sum = r.y, mi.Float(r.w_sum), mi.Float(r.M)  # w_0 = r_0.w_sum (R6)
+        # w_0 = p̂(y_0) W_0 M_0 (R6): r_0.w_sum for a fresh RIS reservoir, and also right for an
+        # already combined one, whose w_sum is not M p̂ W (measured: reusing w_sum there made W
+        # grow without bound)
+        y, m_sum = r.y, mi.Float(r.M)
+        w_sum = phat_sel * r.W * m_sum
         neighbours, m_caps = [], []
         n_ok = dr.zeros(mi.UInt32, dr.width(valid))
         from_neighbour = dr.zeros(mi.Bool, dr.width(valid))
