@@ -28,8 +28,9 @@
    * - ``m_cap``
      - int
      - cap on a neighbour's and a stored reservoir's M (D2); 0 = 2 * candidates (measured: lower
-       gradient error than Bitterli's 20 * candidates, whose long memory keeps stale samples
-       across gradient steps; ``scripts/bench_restir.py`` compares both).
+       gradient error than Bitterli's 20 * candidates, even with the parameters held still:
+       a long memory spreads one sample over many pixels of a step, so per-texel gradients stop
+       averaging; ``scripts/sweep_restir.py`` compares them).
      - 0
    * - ``temporal`` / ``spatial``
      - bool

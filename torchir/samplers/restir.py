@@ -38,8 +38,8 @@ class ReSTIRSampler:
         candidates: M, light candidates per camera sample (streaming RIS).
         neighbors: k, reservoirs of the previous step combined per camera sample.
         radius: neighbour search radius in world units (``None``: 2 pixel footprints).
-        m_cap: cap on M (``None``: 2 * candidates; spec D2's 20 * candidates keeps stale
-            samples for many gradient steps and measured worse, see ``scripts/bench_restir.py``).
+        m_cap: cap on M (``None``: 2 * candidates; spec D2's 20 * candidates measured worse:
+            one sample spreads over many pixels, see ``scripts/sweep_restir.py``).
         temporal, spatial: reuse switches (both: the paper's spatiotemporal reuse of the
             previous step; neither: plain RIS).
         burn_in: forward-only reuse passes before a sensor's first step.
