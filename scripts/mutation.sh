@@ -32,7 +32,7 @@ done
 declare -A TESTS=(
     [torchir/samplers/pixel.py]="tests/test_samplers.py tests/test_pixel_sampling.py"
     [torchir/samplers/_pmf.py]="tests/test_samplers.py"
-    [torchir/samplers/restir.py]="tests/test_restir.py"
+    [torchir/samplers/restir.py]="tests/test_restir_sampler.py"
     [torchir/integrators/restir_di.py]="tests/test_restir.py"
     [torchir/integrators/_light.py]="tests/test_restir.py"
     [torchir/modules/loi.py]="tests/test_loi.py"
