@@ -51,7 +51,7 @@ Experiments, per scene (``--scenes``):
 
 Usage (``torchir bench restir [--quick]`` runs the same in a fresh process):
     python -m torchir.bench.restir --quick     # 32², first default scene, burn-in 8, 8 gradient / 10 training steps (< 1 min)
-    python -m torchir.bench.restir             # 128², default scenes, 32 gradient steps, 150 training steps (~5 min)
+    python -m torchir.bench.restir             # 128², default scenes, 32 gradient steps, 150 training steps (~6-8 min)
     python -m torchir.bench.restir --scenes oxalis_lite --resolution 64 --spp 2
 
 Writes ``<out>/results.json``, ``<out>/tables.md`` (= ``summary.md``, which the bench report
