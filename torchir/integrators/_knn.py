@@ -62,8 +62,15 @@ def knn_kdtree(points: mi.Point3f, queries: mi.Point3f, k: int, radius: float, e
     if n == 0 or nq == 0:
         return _columns(np.zeros((nq, k), np.int64), np.zeros((nq, k), bool), k)
     kk = k + 1 if exclude_self else k
-    dist, idx = cKDTree(pts).query(qs, k=kk, distance_upper_bound=radius, workers=-1)
-    idx = np.asarray(idx).reshape(nq, kk)
+    tree, m = cKDTree(pts), kk + 1
+    while True:  # cKDTree orders equal distances arbitrarily: take every tie at the kk-th distance
+        dist, idx = tree.query(qs, k=m, distance_upper_bound=radius, workers=-1)
+        dist, idx = np.asarray(dist).reshape(nq, m), np.asarray(idx).reshape(nq, m)
+        if m >= n or not np.any(np.isfinite(dist[:, -1]) & (dist[:, -1] == dist[:, kk - 1])):
+            break
+        m = min(2 * m, n)
+    order = np.lexsort((idx, dist), axis=1)  # ascending distance, ties by index
+    idx = np.take_along_axis(idx, order, 1)[:, :kk]
     ok = idx < n
     if exclude_self:
         own = idx == np.arange(nq)[:, None]
