@@ -64,16 +64,16 @@ import argparse
 import datetime
 import gc
 import json
-import logging
 import math
 import statistics
 import tempfile
 import time
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from torchir.bench import combined
 
 __all__ = ["BASELINES", "METHODS", "ORACLE", "ORACLE_LOW", "RESTIRS", "camera_floor", "main", "parse_args", "plot_results", "summarize_scene", "tables"]
 
@@ -416,45 +416,6 @@ def gradient_runs(problem: Problem, a: argparse.Namespace, keys: list[tuple[str,
 
 
 # ------------------------------------------------------------------------ reconstruction
-def _quiet() -> None:
-    import lightning.pytorch  # noqa: F401 - it sets its loggers' levels on import: override them after
-
-    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
-        logging.getLogger(name).setLevel(logging.ERROR)
-    warnings.filterwarnings("ignore", module="lightning")
-    warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-
-
-def _recorder():
-    import lightning.pytorch as pl
-
-    class Recorder(pl.Callback):
-        """Per step: its seconds, the elapsed training time and the texture RMSE after it
-        (``param_error[0]``: the initial error)."""
-
-        def __init__(self) -> None:
-            self.step_seconds: list[float] = []
-            self.elapsed: list[float] = [0.0]
-            self.param_error: list[float] = []
-
-        def on_train_start(self, trainer, pl_module) -> None:
-            self.truth = pl_module.ground_truth()
-            self.param_error.append(pl_module.parameter_error(self.truth))
-            self.start = time.perf_counter()
-
-        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
-            self.t0 = time.perf_counter()
-
-        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-            now = time.perf_counter()
-            self.step_seconds.append(now - self.t0)
-            self.elapsed.append(now - self.start)
-            pl_module.project_parameters()  # the iterate the next step starts from
-            self.param_error.append(pl_module.parameter_error(self.truth))
-
-    return Recorder()
-
-
 def train(name: str, key: str, method: str, a: argparse.Namespace, seed: int, targets, workdir: Path,
           max_seconds: float | None, grad_paths: str = "shared") -> tuple[dict[str, Any], Any]:
     """One training run of ``method`` through the real trainer: ``recon_steps`` steps, or (with
@@ -474,7 +435,7 @@ def train(name: str, key: str, method: str, a: argparse.Namespace, seed: int, ta
     if targets is not None:  # setup() keeps targets that are already there
         data.targets, data.views = targets
     pl.seed_everything(seed, verbose=False)
-    recorder = _recorder()
+    recorder = combined._recorder()  # step seconds, elapsed time, texture RMSE after each step
     trainer = pl.Trainer(
         max_steps=a.recon_steps if max_seconds is None else 1000 * a.recon_steps,
         max_time=None if max_seconds is None else datetime.timedelta(seconds=max_seconds),
@@ -805,7 +766,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     import torchir
 
     torchir.backend.set_variant("auto")
-    _quiet()
+    combined._quiet()
     from . import environment
 
     scenes, skipped = resolve_scenes(a.scenes, a.quick)
