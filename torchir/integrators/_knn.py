@@ -127,7 +127,6 @@ def knn_grid(points: mi.Point3f, queries: mi.Point3f, k: int, radius: float, exc
     qx, qy, qz = _cell_coords(queries, lo, dims, cell)
     qself = dr.arange(mi.UInt32, nq)
     r2 = dr.opaque(mi.Float, radius * radius)
-    big = mi.UInt32(0xFFFFFFFF)
 
     def cond(c, pos, end, *best):
         return (pos < end) | (c < 27)
@@ -157,14 +156,8 @@ def knn_grid(points: mi.Point3f, queries: mi.Point3f, k: int, radius: float, exc
         c = dr.select(load, c + 1, c)
         return (c, pos, end, *bd, *bi)
 
-    state = (dr.zeros(mi.UInt32, nq), dr.zeros(mi.UInt32, nq), dr.zeros(mi.UInt32, nq))
-    state += tuple(dr.full(mi.Float, dr.inf, nq) for _ in range(k)) + tuple(big + dr.zeros(mi.UInt32, nq) for _ in range(k))
-    out = dr.while_loop(state, cond, body)
-    bd, bi = out[3 : 3 + k], out[3 + k :]
-    ok = [d < r2 for d in bd]
-    idx = [dr.select(o, i, 0) for o, i in zip(ok, bi)]
-    dr.eval(idx, ok)
-    return idx, ok
+    head = (dr.zeros(mi.UInt32, nq), dr.zeros(mi.UInt32, nq), dr.zeros(mi.UInt32, nq))
+    return _top_k_scan(head, k, nq, r2, cond, body)
 
 
 @dataclass(frozen=True)
@@ -186,6 +179,22 @@ def _insert_top_k(bd: list, bi: list, accept, dc, ic) -> None:
         nd, ni = dr.select(less, dc, bd[t]), dr.select(less, ic, bi[t])
         dc, ic = dr.select(less, bd[t], dc), dr.select(less, bi[t], ic)
         bd[t], bi[t] = nd, ni
+
+
+def _top_k_scan(head: tuple, k: int, n: int, r2, cond, body):
+    """Run a neighbour scan: ``dr.while_loop`` over the scan's own state ``head`` followed by an
+    empty sorted top-k (``k`` distances at +inf, ``k`` indices at 0xFFFFFFFF) that ``body``
+    fills with :func:`_insert_top_k`. Returns ``k`` ``(index, ok)`` columns of width ``n``;
+    ``ok`` where the entry is closer than the radius (``r2`` its square), index 0 elsewhere."""
+    empty = mi.UInt32(0xFFFFFFFF)
+    state = head + tuple(dr.full(mi.Float, dr.inf, n) for _ in range(k))
+    state += tuple(empty + dr.zeros(mi.UInt32, n) for _ in range(k))
+    out = dr.while_loop(state, cond, body)
+    bd, bi = out[len(head) : len(head) + k], out[len(head) + k :]
+    ok = [d < r2 for d in bd]
+    idx = [dr.select(o, i, 0) for o, i in zip(ok, bi)]
+    dr.eval(idx, ok)
+    return idx, ok
 
 
 def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: ScreenLayout, k: int,
@@ -213,7 +222,6 @@ def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: 
     pix = lane // spp
     qx, qy = mi.Int32(pix % w), mi.Int32(pix // w)
     r2 = dr.opaque(mi.Float, radius * radius)
-    big = mi.UInt32(0xFFFFFFFF)
     w_o, h_o, spp_o = dr.opaque(mi.Int32, w), dr.opaque(mi.Int32, h), dr.opaque(mi.UInt32, spp)
 
     def cond(c, *best):
@@ -236,14 +244,7 @@ def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: 
         _insert_top_k(bd, bi, accept, mi.Float(d2), mi.UInt32(j))
         return (c + 1, *bd, *bi)
 
-    state = (dr.zeros(mi.UInt32, n),) + tuple(dr.full(mi.Float, dr.inf, n) for _ in range(k))
-    state += tuple(big + dr.zeros(mi.UInt32, n) for _ in range(k))
-    out = dr.while_loop(state, cond, body)
-    bd, bi = out[1 : 1 + k], out[1 + k :]
-    ok = [d < r2 for d in bd]
-    idx = [dr.select(o, i, 0) for o, i in zip(ok, bi)]
-    dr.eval(idx, ok)
-    return idx, ok
+    return _top_k_scan((dr.zeros(mi.UInt32, n),), k, n, r2, cond, body)
 
 
 def _default_backend() -> str:
