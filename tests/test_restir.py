@@ -791,35 +791,6 @@ def test_oxalis_lite_emitter_pdf_option():
         torchir.Scene.builtin("oxalis_lite", emitter_pdf="light")
 
 
-def test_emitter_watch_flags_lights_that_come_on_or_move_only(oxalis):
-    """Temporal reuse must stop for one step when a light comes on or moves (the support of
-    the old reservoirs no longer covers its samples), not when lights dim or go off."""
-    from torchir.integrators._scene_watch import EmitterWatch
-
-    scene = torchir.Scene.builtin("oxalis_lite", resolution=8, texture=2, dim_lights=2, hidden_lights=1)
-    watch = EmitterWatch()
-    params = scene.params
-    base = watch(scene.mi_scene)
-    assert len(base[0]) == len(scene.mi_scene.emitters()) and all(base[0])
-    assert not EmitterWatch.same_support(None, base)
-
-    def after(key, value):
-        old = type(params[key])(params[key])  # a copy: the parameter object is updated in place
-        params[key] = value
-        params.update()
-        state = watch(scene.mi_scene)
-        params[key] = old
-        params.update()
-        return state
-
-    off = after(SPOT, mi.Color3f(0.0))
-    assert EmitterWatch.same_support(base, off)  # switched off: support shrinks
-    assert not EmitterWatch.same_support(off, base)  # switched on
-    assert EmitterWatch.same_support(base, after(SPOT, mi.Color3f(400.0)))  # brighter
-    assert not EmitterWatch.same_support(base, after("dim_00.position", mi.Point3f(0.1, 0.2, 2.0)))  # moved
-    assert EmitterWatch.same_support(base, watch(scene.mi_scene))
-
-
 # ---------------------------------------------------------------------------------- frozen pass
 @pytest.mark.parametrize("preset", ["b2", "restir"])
 def test_frozen_pass_equals_the_traced_one(oxalis, preset):
