@@ -866,3 +866,27 @@ def test_frozen_pass_follows_a_moving_camera():
         for a, b in zip(images[False, preset], images[True, preset]):
             assert torch.equal(a, b)
         assert not torch.equal(images[True, preset][1], images[True, preset][2])
+
+
+def test_freeze_follows_torchirs_switch_and_falls_back_loudly(oxalis):
+    """``freeze=None`` follows :func:`torchir.backend.frozen_renders` (``TORCHIR_FREEZE``), as
+    plain renders do; a frozen pass that raises warns and the integrator runs traced."""
+    assert ReSTIRSampler(oxalis).integrator.freeze is True
+    torchir.backend.set_frozen_renders(False)
+    try:
+        assert ReSTIRSampler(oxalis).integrator.freeze is False
+        assert ReSTIRSampler(oxalis, freeze=True).integrator.freeze is True
+    finally:
+        torchir.backend.set_frozen_renders(True)
+    r = ReSTIRSampler(oxalis, preset="b2", candidates=2)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("recording failed")
+
+    r.integrator._frozen_pass_ready = lambda scene: True
+    r.integrator._frozen_pass = broken
+    with pytest.warns(UserWarning, match=r"frozen ReSTIR pass failed \(RuntimeError\('recording failed'\)\); this integrator now runs unfrozen"):
+        img = render(oxalis, {}, spp=1, seed=0, sampler=r)
+    want = render(oxalis, {}, spp=1, seed=0, sampler=ReSTIRSampler(oxalis, preset="b2", candidates=2, freeze=False))
+    assert torch.equal(img, want)
+    assert r.integrator.freeze is False and r.integrator.last_pass_frozen is False

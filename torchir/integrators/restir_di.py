@@ -85,6 +85,7 @@ from __future__ import annotations
 
 import copy
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -174,7 +175,6 @@ class PassStats:
     neighbor_count: Any = None  # UInt32 per lane: neighbours combined (None: no reuse)
     k: int = 0
     camera: tuple | None = None  # the pass's (sensor matrix, width, height, spp)
-    frozen: bool = False  # replayed by dr.freeze (timings: the whole pass only)
     timings: dict = field(default_factory=dict)
 
 
@@ -335,8 +335,13 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         args = (scene, sensor, spp, prev, float(st.radius), source, k, layout)
         t0 = _tic()
         if freeze:  # traced once per configuration, then replayed (no Python tracing, no codegen)
-            ray_weight, image, r, n_ok = self._frozen_pass(dr.opaque(mi.UInt32, seed), *args, None)
-            dr.eval(image, r)
+            try:
+                ray_weight, image, r, n_ok = self._frozen_pass(dr.opaque(mi.UInt32, seed), *args, None)
+                dr.eval(image, r)
+            except Exception as error:  # noqa: BLE001 - fall back, loudly, as torchir's frozen renders do
+                self.freeze = freeze = False
+                warnings.warn(f"frozen ReSTIR pass failed ({error!r}); this integrator now runs unfrozen", stacklevel=2)
+        if freeze:
             stats.timings = {"pass": _tic() - t0}
             self._neighbour_search.last = "screen" if source != "none" else None
         else:
@@ -345,7 +350,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             stats.timings = timings
         if source != "none":
             stats.neighbor_count = n_ok
-        stats.frozen = self.last_pass_frozen = freeze
+        self.last_pass_frozen = freeze
         return (ray_weight, image), r, stats
 
     def _frozen_pass_ready(self, scene: mi.Scene) -> bool:

@@ -57,6 +57,8 @@ class ReSTIRSampler:
             ray for the chosen sample, W = 0 when it is occluded; the support test keeps its rays).
         freeze: replay the traced resampling pass (``dr.freeze``) where it can (no reuse, or
             screen-space neighbours of a sensor that has not moved): far less Python per step.
+            ``None``: as torchir's other renders (:func:`torchir.backend.frozen_renders`, on
+            unless ``TORCHIR_FREEZE=0``).
 
     Example:
         >>> scene = torchir.Scene.builtin("oxalis_lite", resolution=32)
@@ -82,7 +84,7 @@ class ReSTIRSampler:
         normal_threshold: float = 0.9,
         preset: str = "restir",
         target: str = "shadowed",
-        freeze: bool = True,
+        freeze: bool | None = None,
     ) -> None:
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a torchir.Scene, got {type(scene).__name__}")
@@ -116,7 +118,7 @@ class ReSTIRSampler:
             nn_backend=nn_backend,
             normal_threshold=normal_threshold,
             target=target,
-            freeze=freeze,
+            freeze=backend.frozen_renders() if freeze is None else bool(freeze),
         )
 
     # ------------------------------------------------------------------ used by render()
