@@ -2,7 +2,7 @@
 # Mutation testing of torchir's numerical cores with mutmut (pip install -e '.[mutation]').
 # Not run in CI: it is slow. Usage:
 #
-#   scripts/mutation.sh [--budget MINUTES] [--workdir DIR] [FILE ...]
+#   scripts/mutation.sh [--budget MINUTES] [--workdir DIR] [--tests "TEST ..."] [--sample N] [FILE ...]
 #
 # FILE: modules under torchir/ to mutate (default: every file of the map below). Each file is
 # mutated in its own copy of the tree, DIR/<name>/ (default /tmp/torchir-mutation), against
@@ -10,19 +10,31 @@
 # same command resumes: mutmut keeps each mutant's result in DIR/<name>/mutants/ and skips
 # the ones already tested (delete DIR/<name> after changing the code or its tests). The
 # budget (default 30 min) is per file; what it leaves unchecked shows as "not checked".
-# The report, DIR/report.md, gives per file: killed, timeout, survived, no tests, not checked
-# and the score killed+timeout / (killed+timeout+survived); then each survivor's diff, to be
-# annotated (caught now / equivalent mutant / accepted, why).
+# The report, DIR/report.md, gives per file: mutants, killed, timeout, survived, no tests, not
+# checked and the score killed+timeout / (killed+timeout+survived); then each survivor's diff, to be
+# annotated (caught now / equivalent mutant / accepted, why). --tests overrides the map's test
+# files for every FILE given (e.g. to try a new fast test file before it enters the map).
+# --sample N tests only a fixed random sample (seed 0) of N of each file's mutants, for files
+# whose tests render and so cannot test every mutant within a budget: the mutants are
+# generated first (a `mutmut run` filtered to no mutant: generation and the test-coverage
+# pass), the sample is drawn from `mutmut results --all true` and kept in DIR/<name>/sample.txt,
+# and only its mutants not yet tested are run (`mutmut run NAME ...`; it re-runs every mutant
+# it is named, so a resumed run leaves out the ones already done). The report's counts are then
+# those of the sample, and the score comes with its 95 % Wilson interval.
 set -euo pipefail
 
 budget=30
 workdir=/tmp/torchir-mutation
 files=()
+tests_override=""
+sample=0
 while [[ $# -gt 0 ]]; do
     case "$1" in
         --budget) budget="$2"; shift 2 ;;
         --workdir) workdir="$2"; shift 2 ;;
-        -h|--help) sed -n '2,16p' "$0"; exit 0 ;;
+        --tests) tests_override="$2"; shift 2 ;;
+        --sample) sample="$2"; shift 2 ;;
+        -h|--help) sed -n '2,25p' "$0"; exit 0 ;;
         *) files+=("$1"); shift ;;
     esac
 done
@@ -33,7 +45,7 @@ declare -A TESTS=(
     [torchir/samplers/pixel.py]="tests/test_samplers.py tests/test_pixel_sampling.py"
     [torchir/samplers/_pmf.py]="tests/test_samplers.py"
     [torchir/samplers/restir.py]="tests/test_restir_sampler.py"
-    [torchir/integrators/restir_di.py]="tests/test_restir.py"
+    [torchir/integrators/restir_di.py]="tests/test_restir_integrator.py"
     [torchir/integrators/_light.py]="tests/test_light_samples.py"
     [torchir/integrators/_knn.py]="tests/test_knn_and_watch.py"
     [torchir/integrators/_scene_watch.py]="tests/test_knn_and_watch.py"
@@ -47,7 +59,7 @@ declare -A TESTS=(
     [torchir/functions/render_pixels.py]="tests/test_render_pixels.py tests/test_pixel_sampling.py"
     [torchir/functions/probe.py]="tests/test_pixel_sampling.py"
     [torchir/functions/gbuffers.py]="tests/test_gbuffers.py"
-    [torchir/training/module.py]="tests/test_training.py tests/test_guards_training.py"
+    [torchir/training/module.py]="tests/test_training_module.py"
     [torchir/training/parameters.py]="tests/test_training_params.py"
     [torchir/training/results.py]="tests/test_photo_to_answer.py"
     [torchir/training/cli.py]="tests/test_photo_to_answer.py tests/test_training.py"
@@ -66,11 +78,11 @@ root="$(cd "$(dirname "$0")/.." && pwd)"
 command -v mutmut >/dev/null || { echo "mutmut is not installed: pip install -e '.[mutation]'" >&2; exit 1; }
 mkdir -p "$workdir"
 report="$workdir/report.md"
-printf '# torchir mutation report (%s)\n\n| file | killed | timeout | survived | no tests | not checked | score |\n| --- | --- | --- | --- | --- | --- | --- |\n' "$(date -u +%F)" >"$report"
+printf '# torchir mutation report (%s)\n\n| file | mutants | killed | timeout | survived | no tests | not checked | score |\n| --- | --- | --- | --- | --- | --- | --- | --- |\n' "$(date -u +%F)" >"$report"
 survivors=""
 
 for file in "${files[@]}"; do
-    tests="${TESTS[$file]:-}"
+    tests="${tests_override:-${TESTS[$file]:-}}"
     [[ -n "$tests" ]] || { echo "no test map for $file" >&2; exit 2; }
     name="$(echo "$file" | tr '/.' '__')"
     dir="$workdir/$name"
@@ -88,12 +100,45 @@ for file in "${files[@]}"; do
         } >"$dir/setup.cfg"
     fi
     echo "== $file ($tests), budget ${budget} min, in $dir"
-    (cd "$dir" && timeout "$((budget * 60))" nice -n 15 mutmut run --max-children 1 >run.log 2>&1) || true
-    (cd "$dir" && timeout 300 mutmut results --all true >results.txt 2>/dev/null) || true
+    start=$SECONDS
+    if [[ "$sample" -gt 0 ]]; then
+        # generate (and map tests to functions) without testing a mutant: the filter matches none
+        (cd "$dir" && timeout "$((budget * 60))" nice -n 15 mutmut run --max-children 1 'no-mutant-is-named-this' >generate.log 2>&1) || true
+        (cd "$dir" && timeout 300 mutmut results --all true >results.txt 2>/dev/null) || true
+        python3 - "$dir/results.txt" "$sample" >"$dir/sample.txt" <<'PY'
+import random, sys
+names = sorted(line.split(":")[0].strip() for line in open(sys.argv[1]) if ": " in line)
+for name in sorted(random.Random(0).sample(names, min(int(sys.argv[2]), len(names)))):
+    print(name)
+PY
+        total=$(grep -c ': ' "$dir/results.txt" || true)
+        sed 's/.*/ &:/' "$dir/sample.txt" >"$dir/sample.pat"  # " name:" matches that mutant only
+        mapfile -t pending < <(grep -F -f "$dir/sample.pat" "$dir/results.txt" | grep ': not checked$' | cut -d: -f1 | tr -d ' ')
+        left=$((budget * 60 - (SECONDS - start)))
+        if [[ ${#pending[@]} -gt 0 && $left -gt 0 ]]; then
+            (cd "$dir" && timeout "$left" nice -n 15 mutmut run --max-children 1 "${pending[@]}" >run.log 2>&1) || true
+        fi
+        (cd "$dir" && timeout 300 mutmut results --all true 2>/dev/null | grep -F -f sample.pat >results.txt) || true
+        mutants="$(wc -l <"$dir/sample.txt") of $total (sample, seed 0)"
+    else
+        (cd "$dir" && timeout "$((budget * 60))" nice -n 15 mutmut run --max-children 1 >run.log 2>&1) || true
+        (cd "$dir" && timeout 300 mutmut results --all true >results.txt 2>/dev/null) || true
+        mutants=$(grep -c ': ' "$dir/results.txt" || true)
+    fi
     count() { grep -c ": $1\$" "$dir/results.txt" || true; }
     k=$(count killed); t=$(count timeout); s=$(count survived); n=$(count "no tests"); u=$(count "not checked")
-    score=$(python3 -c "d=$k+$t+$s; print(f'{100*($k+$t)/d:.1f} %' if d else '-')")
-    printf '| %s | %s | %s | %s | %s | %s | %s |\n' "$file" "$k" "$t" "$s" "$n" "$u" "$score" >>"$report"
+    score=$(python3 -c "
+import math
+k, d = $k + $t, $k + $t + $s
+if not d:
+    print('-')
+elif $sample > 0:  # Wilson score interval of a binomial proportion, z = 1.96
+    p, z = k / d, 1.96
+    c, h = (p + z * z / (2 * d)) / (1 + z * z / d), z * math.sqrt(p * (1 - p) / d + z * z / (4 * d * d)) / (1 + z * z / d)
+    print(f'{100 * p:.1f} % (95 % CI {100 * (c - h):.1f}-{100 * (c + h):.1f} %)')
+else:
+    print(f'{100 * k / d:.1f} %')")
+    printf '| %s | %s | %s | %s | %s | %s | %s | %s |\n' "$file" "$mutants" "$k" "$t" "$s" "$n" "$u" "$score" >>"$report"
     for m in $(grep ': survived$' "$dir/results.txt" | cut -d: -f1 | tr -d ' '); do
         diff="$(cd "$dir" && timeout 60 mutmut show "$m" 2>/dev/null | grep -E '^[-+][^-+]' || true)"
         survivors+=$'\n'"- \`$m\` (reason: TODO)"$'\n\n```diff\n'"$diff"$'\n```\n'

@@ -239,6 +239,11 @@ def test_sample_candidate_matches_emitter_sampling(occ):
     np.testing.assert_allclose(_np(w), np.where(act & vis, nee, 0.0), rtol=1e-4, atol=1e-7)
     ok = p_c > 0
     np.testing.assert_allclose(_np(w)[ok] * p_c[ok], _np(p_hat)[ok], rtol=1e-4, atol=1e-7)
+    # with_inv_pc: the same candidate plus 1 / p_c on every sampled lane, also where p̂ = 0
+    sampler.seed(7, m)
+    *same, inv_pc = _light.sample_candidate(scene, si, sampler, active, with_inv_pc=True)
+    np.testing.assert_array_equal(_np(same[3]), _np(w))
+    np.testing.assert_allclose(_np(inv_pc), np.where(act & ok, 1.0 / np.where(ok, p_c, 1.0), 0.0), rtol=1e-4)
     if occ:
         assert np.all(_np(f) == 0) and np.all(_np(w) == 0)
         sampler.seed(7, m)
@@ -249,6 +254,30 @@ def test_sample_candidate_matches_emitter_sampling(occ):
     else:
         assert np.all(_np(p_hat)[act] > 0) and np.all(_np(p_hat)[~act] == 0) and np.all(_np(w)[~act] == 0)
         assert len(set(em[act].tolist())) == 3  # all three emitters are drawn
+
+
+@pytest.mark.parametrize("positive_only", [True, False])
+def test_black_surface_gradient_needs_positive_only_off(positive_only):
+    """Albedo 0: f = 0, but df/dA = Le g cos / pi (per channel). ``positive_only=False`` keeps
+    those lanes (value 0, gradient intact); the default drops them (p̂ = 0), gradient 0."""
+    black = mi.load_dict({
+        "type": "scene",
+        "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([2.0, 2.0, 1.0]),
+                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}}},
+        "point": {"type": "point", "position": P_POINT.tolist(), "intensity": {"type": "rgb", "value": I_POINT.tolist()}},
+    })
+    params = mi.traverse(black)
+    key = "plane.bsdf.reflectance.value"
+    albedo = mi.Color3f(0.0)
+    dr.enable_grad(albedo)
+    params[key] = albedo
+    params.update()
+    si = _si(black)
+    f, p_hat = _light.eval_target(black, si, _sample(black, "point", P_POINT), mi.Bool(True), positive_only=positive_only)
+    assert np.all(_np(f) == 0) and np.all(_np(p_hat) == 0)
+    dr.backward(dr.sum(f.x + f.y + f.z))
+    want = _point_closed_form(P_POINT, I_POINT) / ALBEDO  # Le g cos / pi, per channel
+    np.testing.assert_allclose(_np(dr.grad(albedo)).ravel(), want.sum(0) if not positive_only else 0.0, rtol=1e-4)
 
 
 def test_sample_candidate_selection_weights():

@@ -175,9 +175,11 @@ def _trainer_step(**model: Any) -> Callable[[dict], Any]:
         from torchir.training import InverseRenderingModule, ViewDataModule
 
         module = InverseRenderingModule(**{"scene": "cbox", "resolution": 8, "spp": 1, **model})
+        initial = [p.latent.detach().clone() for p in module.scene_parameters]
         trainer = pl.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False)
         trainer.fit(module, datamodule=ViewDataModule(target_spp=8))
-        return [p.latent for p in module.scene_parameters]
+        ctx["trainer_module"] = module
+        return [*(p.latent for p in module.scene_parameters), *initial]
 
     return run
 
@@ -197,6 +199,7 @@ def _non_negative_with_positive_gradient(result: Any, ctx: dict, strict: bool = 
     """Radiance is >= 0, and no path throughput falls when an albedo grows: d(sum)/d(albedo)
     >= 0, and > 0 (``strict``) when the image has enough paths to reach the wall."""
     out, *grads = result if isinstance(result, (list, tuple)) else [result]
+    out = out.detach()
     if float(out.min()) < 0:
         return f"negative radiance {float(out.min())}"
     if grads and not bool((grads[0] > 0 if strict else grads[0] >= 0).all()):
@@ -327,6 +330,13 @@ def _lit_with_gradient(result: Any, ctx: dict) -> str | None:
     return None
 
 
+def _restir_zero_albedo(result: Any, ctx: dict) -> str | None:
+    """A black red wall: images >= 0, and the wall's direct light gives d(sum)/d(albedo) > 0
+    in every channel (the ReSTIR estimate of a positive integrand is positive)."""
+    *images, grad, _ = result
+    return _non_negative_with_positive_gradient([images[-1], grad], ctx)
+
+
 def _restir_light_off(result: Any, ctx: dict) -> str | None:
     *images, grad, stats = result
     if any(torch.count_nonzero(t) for t in (*images, grad)) or float(stats[0]) != 0:
@@ -362,6 +372,69 @@ def _towards_target(inputs: Callable[[], tuple]) -> Callable[[Any, dict], str | 
         return None
 
     return check
+
+
+def _denoised_as_reference(inputs: Callable[[], tuple], radius: int = 3) -> Callable[[Any, dict], str | None]:
+    """The target-aware denoiser's output equals the float64 least-squares reference (per pixel,
+    to float32 rounding of the largest input its window sees), and its gradient is that of a
+    linear map clamped at 0: ``out = clamp(L f, 0)`` is positively homogeneous of degree 1 in
+    ``f``, so ``sum_i f_i d(sum out)/d f_i == sum out`` (Euler), for any ``L``."""
+
+    def check(result: Any, ctx: dict) -> str | None:
+        from torchir.modules.target_aware import target_aware_denoise_reference
+
+        out, grad = result[0].detach(), result[1]
+        noisy, target = inputs()
+        reference = target_aware_denoise_reference(noisy, target, radius=radius).to(out.dtype)
+        seen = torch.nn.functional.max_pool2d(noisy.abs(), 2 * radius + 1, stride=1, padding=radius)
+        if not bool(((out - reference).abs() <= 1e-5 * (1 + seen)).all()):
+            return f"differs from the least-squares reference by {float((out - reference).abs().max()):.3g}"
+        return _euler(out, grad, noisy)
+
+    return check
+
+
+def _euler(out: torch.Tensor, grad: torch.Tensor, noisy: torch.Tensor) -> str | None:
+    """``sum_i f_i d(sum out)/d f_i == sum out`` for a linear map clamped at 0 (Euler)."""
+    euler, total = float((grad.double() * noisy.double()).sum()), float(out.double().sum())
+    if abs(euler - total) > 1e-5 * float((grad.double() * noisy.double()).abs().sum()):
+        return f"sum_i f_i dL/df_i = {euler:.6g}, expected sum(out) = {total:.6g}: not the clamped linear map's gradient"
+    return None
+
+
+def _denoised_black_target(result: Any, ctx: dict) -> str | None:
+    """A black target makes every weight 1 and every regressor 0: the fit is the plain mean of
+    the noisy image over each pixel's window (3 pixels each side, truncated at the border)."""
+    out, grad = result[0].detach(), result[1]
+    noisy = _images(((1, 3, 16, 16), None))()[0]
+    mean = torch.nn.functional.avg_pool2d(noisy, 7, stride=1, padding=3, count_include_pad=False)
+    if not torch.allclose(out, mean, rtol=1e-5, atol=1e-6):
+        return f"not the window mean: max error {float((out - mean).abs().max()):.3g}"
+    return _euler(out, grad, noisy)
+
+
+def _denoised_identity(result: Any, ctx: dict) -> str | None:
+    """One pixel: its window is itself, so the denoiser returns the input and a unit gradient."""
+    out, grad = result[0].detach(), result[1]
+    noisy = _images(((1, 3, 1, 1), None))()[0]
+    if not (torch.equal(out, noisy) and torch.equal(grad, torch.ones_like(grad))):
+        return f"1x1: out {out.flatten().tolist()} should be the input {noisy.flatten().tolist()} with gradient 1"
+    return None
+
+
+def _one_pixel_step(result: Any, ctx: dict) -> str | None:
+    """A 1-pixel step traces exactly budget x (spp + spp_grad) = 2 paths (Stage 1 ran at step 0
+    only), and Adam moves each latent by at most ~lr per step (|m^ / sqrt(v^)| <= 1.0014 for two
+    steps with the default betas), so never more than 2.01 lr over the two steps."""
+    module = ctx["trainer_module"]
+    half = len(result) // 2
+    paths = module.step_metrics.get("paths_per_step")
+    if paths != 2.0:
+        return f"paths_per_step {paths}, expected 1 pixel x 2 paths"
+    moved = max(float((after - before).abs().max()) for after, before in zip(result[:half], result[half:]))
+    if moved > 2.01 * module.lr:
+        return f"a latent moved by {moved:.3g} in two Adam steps of lr {module.lr}"
+    return None
 
 
 def _restir_b1(result: Any, ctx: dict) -> str | None:
@@ -406,10 +479,10 @@ CASES: list[Case] = [
     Case("LossPixelSampler", "NaN in p1 (warning, uniform)", _sampler("loss", _nan_map), check=_weights_and_pdf(1 / 16)),
     Case("UniformPixelSampler", "2^25 pixels", lambda ctx: __import__("torchir.samplers", fromlist=["x"]).UniformPixelSampler(resolution=(4096, 8192), budget=8).sample().weight, check=_weights_and_pdf(1 / 8)),
     # modules (pure torch) ----------------------------------------------------------------
-    Case("TargetAwareDenoiser", "1e6 firefly in noisy", _module(lambda: _denoiser(), _images(((1, 3, 16, 16), _firefly), ((1, 3, 16, 16), None)))),
-    Case("TargetAwareDenoiser", "black target", _module(lambda: _denoiser(), _images(((1, 3, 16, 16), None), ((1, 3, 16, 16), torch.zeros_like)))),
-    Case("TargetAwareDenoiser", "1x1 image", _module(lambda: _denoiser(), _images(((1, 3, 1, 1), None), ((1, 3, 1, 1), None)))),
-    Case("TargetAwareDenoiser", "non-square 5x17 image", _module(lambda: _denoiser(), _images(((2, 3, 5, 17), None), ((2, 3, 5, 17), None)))),
+    Case("TargetAwareDenoiser", "1e6 firefly in noisy", _module(lambda: _denoiser(), _images(((1, 3, 16, 16), _firefly), ((1, 3, 16, 16), None))), check=_denoised_as_reference(_images(((1, 3, 16, 16), _firefly), ((1, 3, 16, 16), None)))),
+    Case("TargetAwareDenoiser", "black target", _module(lambda: _denoiser(), _images(((1, 3, 16, 16), None), ((1, 3, 16, 16), torch.zeros_like))), check=_denoised_black_target),
+    Case("TargetAwareDenoiser", "1x1 image", _module(lambda: _denoiser(), _images(((1, 3, 1, 1), None), ((1, 3, 1, 1), None))), check=_denoised_identity),
+    Case("TargetAwareDenoiser", "non-square 5x17 image", _module(lambda: _denoiser(), _images(((2, 3, 5, 17), None), ((2, 3, 5, 17), None))), check=_denoised_as_reference(_images(((2, 3, 5, 17), None), ((2, 3, 5, 17), None)))),
     Case("TargetAwareDenoiser", "NaN in noisy", _module(lambda: _denoiser(), _images(((1, 3, 8, 8), _nan), ((1, 3, 8, 8), None))), ValueError, "NaN"),
     Case("LOILoss", "constant images", _module(lambda: _loi(), _images(((1, 3, 16, 16), lambda x: torch.full_like(x, 0.3)), ((1, 3, 16, 16), lambda x: torch.full_like(x, 0.7)))), check=_loi_gradient(lambda g: g, "negative")),
     Case("LOILoss", "values far outside the range (bins with no mass)", _module(lambda: _loi(), _images(((1, 3, 16, 16), lambda x: x + 50), ((1, 3, 16, 16), lambda x: -x))), check=_loi_gradient(lambda g: g[..., 6:-6, 6:-6], "zero")),
@@ -420,7 +493,7 @@ CASES: list[Case] = [
     # ReSTIR --------------------------------------------------------------------------------
     Case("ReSTIRSampler", "light switched off (empty reservoirs)", _restir(light=0.0), check=_restir_light_off),
     Case("ReSTIRSampler", "1e6 radiance", _restir(light=1e6), check=_restir_scales_with_emission),
-    Case("ReSTIRSampler", "zero albedo", _restir(albedo=0.0)),
+    Case("ReSTIRSampler", "zero albedo", _restir(albedo=0.0), check=_restir_zero_albedo),
     Case("ReSTIRSampler", "every candidate occluded (door closed, no fill)", _restir_door_closed(), check=_restir_light_off),
     Case("ReSTIRSampler", "every candidate occluded, unshadowed target", _restir_door_closed(target="unshadowed"), check=_restir_light_off),
     Case("ReSTIRSampler", "light switched on after burn-in", _restir_light_on_after_burn_in, check=_lit_with_gradient),
@@ -428,7 +501,7 @@ CASES: list[Case] = [
     Case("ReSTIRSampler", "light-position gradient (unsupported)", _trainer_step(scene="glossy_highlight", parameters={"light.azimuth": {"init": 0.5}}, sampler={"type": "restir"}), ValueError, "light parameter"),
     Case("ReSTIRSampler", "indirect light requested", lambda ctx: _restir_on_depth4(ctx), ValueError, "direct"),
     # trainer step ------------------------------------------------------------------------
-    Case("trainer step", "1x1-pixel sampler budget", _trainer_step(sampler={"type": "adaptive", "budget": 1})),
+    Case("trainer step", "1x1-pixel sampler budget", _trainer_step(sampler={"type": "adaptive", "budget": 1}), check=_one_pixel_step),
     Case("trainer step", "unknown loss", _trainer_step(loss="l3"), ValueError, "model.loss"),
     Case("trainer step", "unknown sampler type", _trainer_step(sampler={"type": "magic"}), ValueError, "sampler.type"),
 ]

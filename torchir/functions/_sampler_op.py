@@ -28,7 +28,10 @@ class RenderSampler(Protocol):
         scene: the :class:`torchir.Scene` it was built for.
         integrator: ``step(mi_scene, sensor, seed, spp) -> (image (H, W, C) TensorXf, cache)``
             advances the state by one render; ``backward(mi_scene, cache, grad_image, seed, spp,
-            geometry=bool, params=dict)`` back-propagates that render's paths.
+            geometry=bool, params=dict)`` back-propagates that render's paths. An integrator
+            whose attribute ``zero_remainder`` is True also takes ``step(..., zero_remainder=
+            bool)``: whether a differentiated value has an exact 0 (see
+            :meth:`SamplerRenderOp.differentiates_a_zero`).
     """
 
     scene: Any
@@ -50,8 +53,22 @@ class SamplerRenderOp(BoundRenderOp):
 
     def primal(self) -> mi.TensorXf:
         s, r = self.settings, self.sampler
-        image, self.cache = r.integrator.step(self.scene.mi_scene, s.sensor, r.render_seed(s.seed), s.spp)
+        options = {"zero_remainder": self.differentiates_a_zero()} if getattr(r.integrator, "zero_remainder", False) else {}
+        image, self.cache = r.integrator.step(self.scene.mi_scene, s.sensor, r.render_seed(s.seed), s.spp, **options)
         return image
+
+    def differentiates_a_zero(self) -> bool:
+        """Whether a differentiated material or emitter value has an entry exactly 0 (a black
+        texel, a light switched off): only there does a resampled estimator's gradient need
+        the samples its target ``p̂ = lum(f)`` gives no weight (``f = 0``, ``df != 0``)."""
+        for name in self.grad_names:
+            if is_geometry_key(name):
+                continue
+            value = self.values[name]
+            flat = value.array if dr.is_tensor_v(value) else dr.ravel(value)
+            if bool(dr.any(flat == 0)):
+                return True
+        return False
 
     def adjoint(self, grad_out: mi.TensorXf) -> None:
         s, r = self.settings, self.sampler

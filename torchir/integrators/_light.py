@@ -10,6 +10,11 @@ and the target p̂(y; x) = lum(f) (R14). Candidates come from standard emitter s
 ``p_c = pdf_sel * pdf_dir * (delta ? 1 : g)``, so ``p̂ / p_c = lum(NEE weight * fs * V)`` (R25),
 and a reservoir's ``W`` is in area (or counting) measure, valid at every shading point.
 
+The gradient ``df/dθ * W`` of a reservoir's sample covers only ``supp(p̂) = supp(f)`` (spec §3.5):
+a black texel or a switched-off light has ``f = 0`` but ``df/dθ > 0``. The integrator estimates
+that remainder from the same candidates (``inv_pc`` of :func:`sample_candidate`, and
+:func:`eval_target` with ``positive_only=False``); see ``restir_di.ReSTIRDirectIntegrator``.
+
 The Dr.Jit struct types are built lazily (they need the Mitsuba variant).
 """
 from __future__ import annotations
@@ -86,12 +91,15 @@ def rebuild_interaction(scene: mi.Scene, r, active: mi.Bool, flags=mi.RayFlags.A
     return pi.compute_surface_interaction(mi.Ray3f(r.o, r.d), flags, active)
 
 
-def eval_target(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool, visibility: bool = True):
+def eval_target(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool, visibility: bool = True,
+                positive_only: bool = True):
     """``(f, p̂)`` of light samples ``y`` at shading points ``si`` (R24, R14).
 
     ``f`` is the RGB contribution ``Le * fs * g * V`` (differentiable through Le and fs when
     called under ``dr.resume_grad``); ``p̂ = lum(f)``. Zero (never NaN) where inactive, on the
     light, or behind a one-sided emitter. ``visibility=False`` skips the shadow ray.
+    ``positive_only=False`` keeps lanes whose ``lum(f)`` is 0 (their ``f`` is 0 but may have a
+    gradient: a black albedo, a light switched off).
     """
     active = mi.Bool(active) & si.is_valid()
     n = dr.width(active)
@@ -110,7 +118,9 @@ def eval_target(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool
     bsdf = si.bsdf()
     fs = bsdf.eval(mi.BSDFContext(), si, si.to_local(d), active)  # cosine included
     f = le * fs * g
-    active &= dr.isfinite(mi.luminance(f)) & (mi.luminance(f) > 0)
+    active &= dr.isfinite(mi.luminance(f))
+    if positive_only:
+        active &= mi.luminance(f) > 0
     if visibility:
         active &= ~scene.ray_test(si.spawn_ray_to(y.p), active)
     f = dr.select(active, f, 0.0)
@@ -118,10 +128,11 @@ def eval_target(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool
 
 
 def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Sampler, active: mi.Bool,
-                     visibility: bool = True):
+                     visibility: bool = True, with_inv_pc: bool = False):
     """One light candidate (R15): emitter by ``sampling_weight``, then the emitter's own
     sampling. Returns ``(y, f, p̂, w)`` with ``w = p̂ / p_c`` (R4, R25); ``visibility=False``
-    skips the shadow ray (the unshadowed target)."""
+    skips the shadow ray (the unshadowed target). ``with_inv_pc`` appends ``1 / p_c`` wherever
+    ``y`` is a valid sample, also where ``p̂ = 0`` (0 elsewhere)."""
     active = mi.Bool(active)  # the &= below must not modify the caller's mask
     n = dr.width(active)
     u = sampler.next_2d(active)
@@ -134,10 +145,13 @@ def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.S
     g = dr.select(ds.delta, 1.0, dr.abs(dr.dot(ds.n, ds.d)) / dr.select(active, ds.dist * ds.dist, 1.0))
     f = weight * ds.pdf * fs * dr.select(ds.delta, 1.0, g)  # = Le fs g
     nee = weight * sel_weight * fs  # = f / p_c
-    active &= dr.isfinite(mi.luminance(nee)) & (mi.luminance(f) > 0)
+    inv_pc = sel_weight / dr.select(active, ds.pdf * dr.select(ds.delta, 1.0, g), 1.0)
+    sampled = active & dr.isfinite(inv_pc) & dr.isfinite(mi.luminance(nee))
+    active = sampled & (mi.luminance(f) > 0)
     if visibility:
         active &= ~scene.ray_test(si.spawn_ray_to(ds.p), active)
     y = dr.zeros(LightSample(), n)
     y.em, y.p, y.n, y.uv, y.delta = idx, ds.p, mi.Vector3f(ds.n), ds.uv, ds.delta
     f = dr.select(active, f, 0.0)
-    return y, f, dr.select(active, mi.luminance(f), 0.0), dr.select(active, mi.luminance(nee), 0.0)
+    out = (y, f, dr.select(active, mi.luminance(f), 0.0), dr.select(active, mi.luminance(nee), 0.0))
+    return (*out, dr.select(sampled, inv_pc, 0.0)) if with_inv_pc else out

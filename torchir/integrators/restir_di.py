@@ -79,6 +79,15 @@
 Only direct illumination at the first hit: emission seen by the camera plus one resampled
 light vertex (point, spot and area emitters). The gradient is the interior term (R17, R18):
 ``W``, the chosen light sample and visibility are constants, ``Le * fs * g`` is differentiated.
+That covers the gradient only where ``p̂ = lum(f) > 0``; where ``f = 0`` but its gradient is not
+(a black texel, a switched-off light: spec §3.5 left these at exactly 0), each lane keeps the
+first of its fresh candidates with ``p̂ = 0`` and adds ``df(y0) * n0 / (M p_c(y0))`` to the
+gradient (``n0`` of the ``M`` candidates had ``p̂ = 0``; one shadow ray tests ``y0``). Its value
+is 0, so the image is unchanged, and it is unbiased for the remainder ``∫ df 1[p̂ = 0]``. That
+remainder is non-zero only where a differentiated value is exactly 0 (a light's cone or a
+one-sided emitter zeroes ``f`` *and* its derivative), so ``step(zero_remainder=False)`` skips
+it: torchir's ``render`` does when no differentiated material or emitter value has a 0 entry
+(measured: the remainder costs a third of a step on ``ajar_painting``).
 RGB variants only; no media, no environment emitters, a box pixel filter.
 """
 from __future__ import annotations
@@ -168,6 +177,7 @@ class StepCache:
     ray_weight: Any
     prev: Any  # the reservoirs the step combined with (for the decorrelated pass)
     prev_camera: tuple | None = None  # the camera that rendered ``prev``
+    zero: Any = None  # (LightSample y0, Float w0): the p̂ = 0 remainder of the gradient
 
 
 @dataclass
@@ -175,6 +185,7 @@ class PassStats:
     neighbor_count: Any = None  # UInt32 per lane: neighbours combined (None: no reuse)
     k: int = 0
     camera: tuple | None = None  # the pass's (sensor matrix, width, height, spp)
+    zero: Any = None  # (LightSample y0, Float w0) per lane: see the module docstring
     timings: dict = field(default_factory=dict)
 
 
@@ -185,6 +196,7 @@ def _tic() -> float:
 
 class ReSTIRDirectIntegrator(RBIntegrator):
     __doc__ = __doc__
+    zero_remainder = True  # step() takes zero_remainder= (torchir's render sets it per step)
 
     def __init__(self, props: mi.Properties | None = None, **options: Any) -> None:
         props = mi.Properties() if props is None else props
@@ -279,8 +291,9 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         raise NotImplementedError("ReSTIR DI implements reverse mode only (render_backward)")
 
     # ------------------------------------------------------------------ one step
-    def step(self, scene: mi.Scene, sensor: int, seed: int, spp: int):
+    def step(self, scene: mi.Scene, sensor: int, seed: int, spp: int, zero_remainder: bool = True):
         """Render one image with reuse and advance sensor ``sensor``'s reservoirs.
+        ``zero_remainder``: keep the ``p̂ = 0`` remainder of the gradient (module docstring).
 
         Returns ``(image (H, W, 3) TensorXf, StepCache)``."""
         st = self.state(scene, sensor)
@@ -296,25 +309,26 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         prev, prev_camera = st.prev, st.camera
         if prev is not None and not self._emitter_watch.same_support(st.lights, lights):
             prev = None  # a light came on or moved: the old reservoirs cannot hold its samples
-        lanes, out, stats = self.sample_paths(scene, sensor, seed, spp, prev, st, prev_camera)
+        lanes, out, stats = self.sample_paths(scene, sensor, seed, spp, prev, st, prev_camera, zero_remainder)
         ray_weight, image = lanes
         if self.temporal:
             st.prev, st.camera, st.lights = out, stats.camera, lights
         st.steps += 1
         self.timings = {"burn_in": t_burn, **stats.timings}
         self._last_pass = (out, stats)  # statistics computed on demand (host syncs)
-        return image, StepCache(sensor, spp, out, ray_weight, prev, prev_camera)
+        return image, StepCache(sensor, spp, out, ray_weight, prev, prev_camera, stats.zero)
 
     def sample_paths(self, scene: mi.Scene, sensor: int, seed: int, spp: int, prev, st: SensorState,
-                     prev_camera: tuple | None = None):
+                     prev_camera: tuple | None = None, zero_remainder: bool = False):
         """One non-differentiable resampling pass (Alg. A4 without the backward) against the
-        reservoirs ``prev``, rendered by a camera ``prev_camera`` (``SensorState.camera``).
+        reservoirs ``prev``, rendered by a camera ``prev_camera`` (``SensorState.camera``);
+        ``zero_remainder``: also draw the ``p̂ = 0`` remainder's samples (``PassStats.zero``).
 
         Returns ``((ray_weight, image), reservoirs, PassStats)``."""
         with dr.suspend_grad():
-            return self._sample_paths(scene, sensor, seed, spp, prev, st, prev_camera)
+            return self._sample_paths(scene, sensor, seed, spp, prev, st, prev_camera, zero_remainder)
 
-    def _sample_paths(self, scene, sensor, seed, spp, prev, st, prev_camera):
+    def _sample_paths(self, scene, sensor, seed, spp, prev, st, prev_camera, zero_remainder):
         sensor_obj = scene.sensors()[sensor]
         w, h = (int(v) for v in sensor_obj.film().crop_size())
         camera = (tuple(np.array(sensor_obj.world_transform().matrix).ravel().tolist()), w, h, spp)
@@ -332,12 +346,12 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if freeze:
             freeze = self._frozen_pass_ready(scene)
         stats = PassStats(camera=camera, k=k if source != "none" else 0)
-        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout)
+        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout, bool(zero_remainder))
         t0 = _tic()
         if freeze:  # traced once per configuration, then replayed (no Python tracing, no codegen)
             try:
-                ray_weight, image, r, n_ok = self._frozen_pass(dr.opaque(mi.UInt32, seed), *args, None)
-                dr.eval(image, r)
+                ray_weight, image, r, n_ok, zero = self._frozen_pass(dr.opaque(mi.UInt32, seed), *args, None)
+                dr.eval(image, r, zero if zero is not None else ())
             except Exception as error:  # noqa: BLE001 - fall back, loudly, as torchir's frozen renders do
                 self.freeze = freeze = False
                 warnings.warn(f"frozen ReSTIR pass failed ({error!r}); this integrator now runs unfrozen", stacklevel=2)
@@ -346,8 +360,9 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             self._neighbour_search.last = "screen" if source != "none" else None
         else:
             timings: dict[str, float] = {}
-            ray_weight, image, r, n_ok = self._pass(mi.UInt32(seed), *args, timings)
+            ray_weight, image, r, n_ok, zero = self._pass(mi.UInt32(seed), *args, timings)
             stats.timings = timings
+        stats.zero = zero
         if source != "none":
             stats.neighbor_count = n_ok
         self.last_pass_frozen = freeze
@@ -371,7 +386,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self._frozen_pass, self._geometry_frozen = dr.freeze(self._pass), now
         return True
 
-    def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, timings):
+    def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, timings):
         """The resampling pass on Dr.Jit values only (so it can be frozen): camera rays,
         streaming RIS, the neighbour search (``screen`` when frozen) and the combination.
         ``timings`` (a dict, or None when frozen): seconds per stage, measured with syncs."""
@@ -399,7 +414,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         le_vis = si.emitter(scene).eval(si, valid)
 
         # Streaming RIS over light candidates (Alg. A1; paper Eq. 4-6)
-        y, f_sel, phat_sel, w_sum = self._streaming_ris(scene, si, sampler, valid, n)
+        y, f_sel, phat_sel, w_sum, zero = self._streaming_ris(scene, si, sampler, valid, n, zero_remainder)
         if not self.shadowed:  # one shadow ray for the chosen candidate; W = 0 when occluded
             seen = _visible(scene, si, y, valid & (phat_sel > 0))
             w_sum, f_sel = dr.select(seen, w_sum, 0.0), dr.select(seen, f_sel, 0.0)
@@ -436,37 +451,49 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             t1 = tic("combine", t2)
         contrib = ray_weight * (le_vis + f_sel * r.W)  # (R16)
         image = _develop(contrib, spp, h, w)
-        dr.eval(image)
+        dr.eval(image, zero if zero is not None else ())
         tic("develop", t1)
-        return ray_weight, image, r, n_ok
+        return ray_weight, image, r, n_ok, zero
 
-    def _streaming_ris(self, scene, si, sampler, valid, n: int):
-        """``(y, f, p̂, w_sum)`` of streaming RIS over ``candidates`` light candidates (Alg. A1).
+    def _streaming_ris(self, scene, si, sampler, valid, n: int, zero_remainder: bool):
+        """``(y, f, p̂, w_sum, (y0, w0))`` of streaming RIS over ``candidates`` light candidates
+        (Alg. A1), with ``y0`` the first candidate whose ``p̂`` is 0 and ``w0 = n0 / (M p_c(y0))``
+        (0 where none, or where ``y0`` is occluded): the gradient's ``p̂ = 0`` remainder (None
+        without ``zero_remainder``).
         Up to ``UNROLLED_CANDIDATES`` the loop is unrolled into the kernel; beyond, a symbolic
         loop keeps the kernel small (1024 unrolled candidates took minutes to compile)."""
-        y = dr.zeros(LightSample(), n)
+        y, y0 = dr.zeros(LightSample(), n), dr.zeros(LightSample(), n)
         f_sel, phat_sel = dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n)
-        w_sum = dr.zeros(mi.Float, n)
+        w_sum, inv_pc0, n0 = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
 
-        def candidate(y, f_sel, phat_sel, w_sum):
-            y_m, f_m, phat_m, w_m = sample_candidate(scene, si, sampler, valid, visibility=self.shadowed)
+        def candidate(y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0):
+            y_m, f_m, phat_m, w_m, inv_pc = sample_candidate(scene, si, sampler, valid, visibility=self.shadowed,
+                                                             with_inv_pc=True)
             w_sum = w_sum + w_m
             take = valid & (sampler.next_1d(valid) * w_sum < w_m)  # no division (A1)
-            return dr.select(take, y_m, y), dr.select(take, f_m, f_sel), dr.select(take, phat_m, phat_sel), w_sum
+            zero = valid & (inv_pc > 0) & (phat_m == 0) if zero_remainder else mi.Bool(False)
+            first = zero & (n0 == 0)
+            return (dr.select(take, y_m, y), dr.select(take, f_m, f_sel), dr.select(take, phat_m, phat_sel), w_sum,
+                    dr.select(first, y_m, y0), dr.select(first, inv_pc, inv_pc0), dr.select(zero, n0 + 1.0, n0))
 
+        state = (y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0)
         if self.candidates <= UNROLLED_CANDIDATES:
             for _ in range(self.candidates):
-                y, f_sel, phat_sel, w_sum = candidate(y, f_sel, phat_sel, w_sum)
-            return y, f_sel, phat_sel, w_sum
+                state = candidate(*state)
+        else:
+            def body(i, sampler_, *rest):
+                return (i + 1, sampler_, *candidate(*rest))
 
-        def body(i, sampler_, y, f_sel, phat_sel, w_sum):
-            return (i + 1, sampler_, *candidate(y, f_sel, phat_sel, w_sum))
-
-        state = (dr.zeros(mi.UInt32, n), sampler, y, f_sel, phat_sel, w_sum)
-        _, _, y, f_sel, phat_sel, w_sum = dr.while_loop(
-            state, lambda i, *rest: i < self.candidates, body, labels=("i", "sampler", "y", "f", "phat", "w_sum")
-        )
-        return y, f_sel, phat_sel, w_sum
+            _, _, *state = dr.while_loop(
+                (dr.zeros(mi.UInt32, n), sampler, *state), lambda i, *rest: i < self.candidates, body,
+                labels=("i", "sampler", "y", "f", "phat", "w_sum", "y0", "inv_pc0", "n0"),
+            )
+        y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0 = state
+        if not zero_remainder:
+            return y, f_sel, phat_sel, w_sum, None
+        w0 = n0 * inv_pc0 / self.candidates
+        w0 = dr.select(_visible(scene, si, y0, valid & (w0 > 0)), w0, 0.0)  # V = 0: no gradient
+        return y, f_sel, phat_sel, w_sum, (y0, w0)
 
     def _combine(self, scene, sampler, si, r, f_sel, phat_sel, source, nbr, ok):
         """Bitterli's unbiased 1/Z combination with M capping (R6-R9; corrects Alg. P3, D1)."""
@@ -534,17 +561,17 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         """
         t0 = _tic()
         st = self.state(scene, cache.sensor)
-        lanes, ray_weight, spp = cache.lanes, cache.ray_weight, cache.spp
+        lanes, ray_weight, spp, zero = cache.lanes, cache.ray_weight, cache.spp, cache.zero
         if self.forward_only or (self.grad_paths == "decorrelated"):
             saved = (self.temporal, self.spatial)
             if self.forward_only:
                 self.temporal = self.spatial = False
             try:
-                (ray_weight, _), lanes, _ = self.sample_paths(
-                    scene, cache.sensor, seed_grad, spp_grad, cache.prev, st, cache.prev_camera)
+                (ray_weight, _), lanes, stats = self.sample_paths(
+                    scene, cache.sensor, seed_grad, spp_grad, cache.prev, st, cache.prev_camera, zero is not None)
             finally:
                 self.temporal, self.spatial = saved
-            spp = spp_grad
+            spp, zero = spp_grad, stats.zero
         n = dr.width(lanes.valid)
         with dr.resume_grad():
             if geometry:  # ray-following shading point, as direct_projective (spec §6.7)
@@ -554,6 +581,10 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             f, _ = eval_target(scene, si, lanes.y, lanes.valid & (lanes.W > 0), visibility=False)
             le = si.emitter(scene).eval(si, lanes.valid)
             contrib = ray_weight * (le + f * lanes.W)  # W detached (R18)
+            if zero is not None:  # the p̂ = 0 remainder: value 0, gradient df(y0) w0
+                y0, w0 = zero
+                f0, _ = eval_target(scene, si, y0, lanes.valid & (w0 > 0), visibility=False, positive_only=False)
+                contrib += ray_weight * f0 * w0
             pix = dr.arange(mi.UInt32, n) // spp
             delta_l = dr.gather(mi.Color3f, grad_in.array, pix) / spp
             dr.backward(dr.dot(contrib, delta_l))

@@ -55,6 +55,8 @@ class ReSTIRSampler:
         target: ``"shadowed"`` (p̂ includes visibility: a shadow ray per candidate and per
             neighbour; the paper) or ``"unshadowed"`` (Bitterli's unbiased variant: one shadow
             ray for the chosen sample, W = 0 when it is occluded; the support test keeps its rays).
+            With either, a black texel or a switched-off light (f = 0, so p̂ = 0) still gets its
+            unbiased gradient, from the fresh candidates (``integrators/restir_di.py``).
         freeze: replay the traced resampling pass (``dr.freeze``) where it can (no reuse, or
             screen-space neighbours of a sensor that has not moved): far less Python per step.
             ``None``: as torchir's other renders (:func:`torchir.backend.frozen_renders`, on
