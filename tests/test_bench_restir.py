@@ -217,3 +217,22 @@ def test_sweep_script_parses_option_sets():
     assert sweep.keywords("") == {}
     with pytest.raises(ValueError):
         sweep.keywords("candidates=__import__('os')")  # literals only
+
+
+# ------------------------------------------------------------------------------ restir_views
+def test_views_bench_tiny_run(tmp_path):
+    """A tiny run of the multi-view bench writes its outputs, with one error per step and a
+    clock that only grows; the summary's efficiency is (e_base^2 t_base) / (e^2 t)."""
+    from torchir.bench import restir_views
+
+    results = restir_views.main(["--resolution", "16", "--views", "2", "--steps", "4", "--burn-in", "1",
+                                 "--ref-spp", "64", "--candidates", "2", "--out", str(tmp_path)])
+    assert set(results) == {"B.2", "per-sensor (burn-in 1)", "carry-over (burn-in 1)"}
+    for r in results.values():
+        assert len(r["errors"]) == 4 and all(0 < e < 10 for e in r["errors"])
+        assert all(b > a for a, b in zip(r["clock"], r["clock"][1:])) and r["seconds"] == r["clock"][-1]
+    for name in ("summary.md", "results.json", "views.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    table = restir_views.summarize({"per-sensor (burn-in 4)": {"rms_error": 0.2, "seconds": 2.0},
+                                    "carry-over (burn-in 4)": {"rms_error": 0.1, "seconds": 4.0}}, [4])
+    assert "| carry-over (burn-in 4) | 0.1000 | 4.00 | 2.00x |" in table

@@ -646,6 +646,34 @@ def test_multiview_keeps_one_chain_per_sensor():
     assert not torch.equal(interleaved[0][2], interleaved[1][2])  # the two views do differ
 
 
+def test_multiview_carry_over_chains_unbiased():
+    """Alg. 8's one store shared by two views that see the canvas from different places: each
+    view's chain means (12 chains alternating the views, first 2 steps dropped) match that
+    view's prb reference within 4 standard errors of the difference of the image means."""
+    from torchir.scenes import oxalis_lite
+
+    d = oxalis_lite.build(resolution=RES, texture=6, dim_lights=2, hidden_lights=2)
+    d["sensor_b"] = torchir.scenes._common.perspective([0.9, 0.3, 2.6], [0, 0, 0], [0, 1, 0], 45.0, RES, RES)
+    scene = torchir.Scene.from_dict(d)
+    for view in (0, 1):
+        imgs = np.stack([render(scene, {}, spp=512, seed=20_000 + i, sensor=view).numpy() for i in range(4)])
+        means = imgs.reshape(4, -1).mean(1)
+        ref, ref_mean_se = imgs.mean(0), float(means.std(ddof=1) / 2.0 / means.mean())
+        chains = []
+        for c in range(12):
+            r = ReSTIRSampler(scene, seed=c + 1, candidates=4, neighbors=4, burn_in=2, multiview="carry_over")
+            own = []
+            for step in range(8):
+                for v in (0, 1):
+                    img = render(scene, {}, spp=2, seed=step, sensor=v, sampler=r).numpy()
+                    if v == view and step >= 2:
+                        own.append(img)
+            chains.append(np.mean(own, 0))
+        ratio, se = _mean_ratio_and_se(np.stack(chains), ref)
+        bound = 4 * math.hypot(se, ref_mean_se)
+        assert bound < 0.06 and abs(ratio - 1) < bound, (view, ratio, bound)
+
+
 # ---------------------------------------------------------------------------------- errors
 def test_clear_errors(oxalis, cbox):
     with pytest.raises(ValueError, match="indirect"):

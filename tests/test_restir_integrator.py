@@ -155,7 +155,7 @@ def test_defaults_and_initial_state():
     got = {k: getattr(i, k) for k in restir_di._OPTIONS}
     assert got == {"candidates": 16, "neighbors": 8, "radius": 0.0, "normal_threshold": 0.9, "m_cap": 32.0,
                    "temporal": True, "spatial": True, "burn_in": 32, "grad_paths": "shared", "forward_only": False,
-                   "nn_backend": "auto", "target": "shadowed", "freeze": True}
+                   "nn_backend": "auto", "target": "shadowed", "freeze": True, "multiview": "per_sensor"}
     assert type(i.m_cap) is float and type(i.radius) is float and type(i.normal_threshold) is float
     assert i.states == {} and i.last == {} and i.timings == {} and i.stats == {}
     assert i.last_pass_frozen is False and i._frozen_pass is None and i._last_pass is None
@@ -196,6 +196,7 @@ def test_option_errors(monkeypatch):
     assert _msg(ValueError, _integrator, m_cap=-1) == "m_cap must be >= 0, got -1"
     assert _msg(ValueError, _integrator, burn_in=-1) == "burn_in must be >= 0, got -1"
     assert _integrator(neighbors=1, burn_in=0, candidates=1).neighbors == 1
+    assert _msg(ValueError, _integrator, multiview="shared") == "multiview must be 'per_sensor' or 'carry_over', got 'shared'"
     for bad in (-0.5, float("inf"), float("nan")):
         assert _msg(ValueError, _integrator, radius=bad) == f"radius must be >= 0 (0 = automatic), got {bad}"
     assert _msg(ValueError, _integrator, grad_paths="both") == "grad_paths must be 'shared' or 'decorrelated', got 'both'"
@@ -721,6 +722,80 @@ def test_zero_remainder_adds_nothing_where_no_value_is_zero(multi):
         grads.append(_backward(multi, i, weights, 5, 2, 9, 1)[0])
     assert np.abs(grads[0]).sum() > 0
     np.testing.assert_array_equal(grads[0], grads[1])
+
+
+# ------------------------------------------------------------------------------ multi-view (Alg. 8)
+def _views_scene() -> mi.Scene:
+    """The point scene with four sensors: 0 the original; 1 the same camera, fov 20; 2 under
+    the floor looking up (the reservoirs' back side); 3 oblique, the blocker hiding some floor."""
+    from torchir.scenes._common import perspective
+
+    d = _dict(False)
+    d["sensor1"] = perspective([0, 0, 3.0], [0, 0, 0], [0, 1, 0], 20.0, RES, RES)
+    d["sensor2"] = perspective([0, 0, -3.0], [0, 0, 0], [0, 1, 0], 50.0, RES, RES)
+    d["sensor3"] = perspective([-1.2, 1.2, 1.2], [0.2, -0.2, 0], [0, 0, 1], 60.0, RES, RES)
+    return mi.load_dict(d)
+
+
+def _seen_reference(scene: mi.Scene, sensor: int, p: np.ndarray, n: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Seen from sensor ``sensor``, computed another way: in its camera frame (Mitsuba cameras
+    look down +z) inside the film's fov, on the camera's side of the surface, and the camera's
+    own ray towards the point reaching it (ray_intersect from the camera, t ~ distance)."""
+    s = scene.sensors()[sensor]
+    to_world = np.array(s.world_transform().matrix, dtype=np.float64)[..., 0]
+    eye = to_world[:3, 3]
+    local = (np.linalg.inv(to_world) @ np.c_[p, np.ones(len(p))].T).T[:, :3]
+    half = math.tan(math.radians(float(mi.traverse(s)["x_fov"][0])) / 2)
+    inside = (local[:, 2] > 0) & (np.abs(local[:, 0] / local[:, 2]) < half) & (np.abs(local[:, 1] / local[:, 2]) < half)
+    to_p = p - eye
+    dist = np.linalg.norm(to_p, axis=1)
+    d = to_p / dist[:, None]
+    ray = mi.Ray3f(mi.Point3f(*[np.full(len(p), e, np.float32) for e in eye]), mi.Vector3f(*d.T.astype(np.float32)))
+    t = np.array(scene.ray_intersect_preliminary(ray).t, dtype=np.float64)
+    facing = (n * -d).sum(1) > 0
+    return valid & inside & facing & (t > dist * (1 - 1e-3))
+
+
+def test_seen_by_the_four_sensors():
+    scene = _views_scene()
+    _, cache = _integrator(**B1).step(scene, 0, 3, 2)
+    r = cache.lanes
+    p, n, valid = _np(r.p).T, _np(r.n).T, np.array(r.valid)
+    assert valid.sum() > 0.5 * len(valid)
+    counts = []
+    for sensor in range(4):
+        seen = np.array(restir_di.seen_by(scene, sensor, r))
+        want = _seen_reference(scene, sensor, p, n, valid)
+        # a point within a float32 rounding of the film's edge may go either way
+        assert (seen != want).sum() <= 2, (sensor, int((seen != want).sum()))
+        counts.append(int(seen.sum()))
+    assert counts[0] == valid.sum() and counts[2] == 0  # its own first hits; the back side
+    assert 0 < counts[1] < counts[0] and 0 < counts[3] < counts[0]  # narrower; partly hidden or outside
+
+
+def test_carry_over_keeps_what_the_rendering_view_does_not_see():
+    """Alg. 8's store: after view v renders, it holds v's new reservoirs plus exactly the old
+    valid ones v does not see; per-sensor chains keep one store per sensor instead."""
+    scene = _views_scene()
+    i = _integrator(candidates=2, neighbors=2, burn_in=1, multiview="carry_over")
+    i.step(scene, 0, 1, 1)
+    store0 = i.states[restir_di.STORE].prev
+    assert set(i.states) == {restir_di.STORE} and dr.width(store0.valid) == RES * RES
+    _, cache = i.step(scene, 3, 2, 1)
+    store = i.states[restir_di.STORE].prev
+    kept = np.array(store0.valid) & ~np.array(restir_di.seen_by(scene, 3, store0))
+    assert 0 < kept.sum() < np.array(store0.valid).sum()
+    assert dr.width(store.valid) == RES * RES + kept.sum()
+    np.testing.assert_array_equal(_np(store.p).T[: RES * RES], _np(cache.lanes.p).T)  # new first
+    np.testing.assert_array_equal(_np(store.p).T[RES * RES:], _np(store0.p).T[kept])  # then the carried
+    np.testing.assert_array_equal(_np(store.W)[RES * RES:], _np(store0.W)[kept])
+    assert cache.prev is store0 and i.states[restir_di.STORE].camera is None  # world-space search
+    i.step(scene, 0, 3, 1)  # view 0 again: it sees (and replaces) its own old reservoirs
+    assert dr.width(i.states[restir_di.STORE].prev.valid) < dr.width(store.valid)
+    per = _integrator(candidates=2, neighbors=2, burn_in=1)
+    per.step(scene, 0, 1, 1)
+    per.step(scene, 3, 2, 1)
+    assert set(per.states) == {0, 3} and dr.width(per.states[3].prev.valid) == RES * RES
 
 
 def test_emitter_gradients_obey_eulers_identity(multi):

@@ -21,6 +21,7 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "denoiser": "torchir.bench.denoiser",
     "loi": "torchir.bench.loi",
     "restir": "torchir.bench.restir",
+    "restir_views": "torchir.bench.restir_views",
     "combined": "torchir.bench.combined",
     "stepcost": "torchir.bench.stepcost",
     "soak": "torchir.bench.soak",

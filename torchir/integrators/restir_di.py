@@ -123,7 +123,10 @@ _OPTIONS = {
     "nn_backend": "auto",
     "target": "shadowed",
     "freeze": True,
+    "multiview": "per_sensor",
 }
+MULTIVIEW = ("per_sensor", "carry_over")
+STORE = -1  # the state key of the one reservoir store of multiview="carry_over"
 
 
 UNROLLED_CANDIDATES = 32  # more candidates: a symbolic loop (kernel size and compile time)
@@ -230,6 +233,9 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if cfg["target"] not in ("shadowed", "unshadowed"):
             raise ValueError(f"target must be 'shadowed' or 'unshadowed', got {cfg['target']!r}")
         self.target = cfg["target"]
+        if cfg["multiview"] not in MULTIVIEW:
+            raise ValueError(f"multiview must be 'per_sensor' or 'carry_over', got {cfg['multiview']!r}")
+        self.multiview = cfg["multiview"]
         self._neighbour_search = _knn.NeighbourSearch(self.nn_backend)
         self._emitter_watch = EmitterWatch()
         self.freeze = bool(cfg["freeze"])
@@ -296,7 +302,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         ``zero_remainder``: keep the ``p̂ = 0`` remainder of the gradient (module docstring).
 
         Returns ``(image (H, W, 3) TensorXf, StepCache)``."""
-        st = self.state(scene, sensor)
+        st = self.state(scene, STORE if self.multiview == "carry_over" else sensor)
         t0 = _tic()
         if st.prev is None and self.temporal and self.burn_in > 0:
             st.lights = self._emitter_watch(scene)
@@ -311,7 +317,9 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             prev = None  # a light came on or moved: the old reservoirs cannot hold its samples
         lanes, out, stats = self.sample_paths(scene, sensor, seed, spp, prev, st, prev_camera, zero_remainder)
         ray_weight, image = lanes
-        if self.temporal:
+        if self.temporal and self.multiview == "carry_over":  # Alg. A8: one store for all views
+            st.prev, st.camera, st.lights = carry_over(scene, sensor, out, prev), None, lights
+        elif self.temporal:
             st.prev, st.camera, st.lights = out, stats.camera, lights
         st.steps += 1
         self.timings = {"burn_in": t_burn, **stats.timings}
@@ -560,7 +568,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         (no reuse); ``params`` are the grad-enabled values it differentiates.
         """
         t0 = _tic()
-        st = self.state(scene, cache.sensor)
+        st = self.state(scene, STORE if self.multiview == "carry_over" else cache.sensor)
         lanes, ray_weight, spp, zero = cache.lanes, cache.ray_weight, cache.spp, cache.zero
         if self.forward_only or (self.grad_paths == "decorrelated"):
             saved = (self.temporal, self.spatial)
@@ -633,6 +641,37 @@ class ReSTIRDirectIntegrator(RBIntegrator):
 
 
 # ---------------------------------------------------------------------- helpers
+def seen_by(scene: mi.Scene, sensor: int, r) -> mi.Bool:
+    """Which reservoirs ``r`` sensor ``sensor`` sees: their shading point projects into its film,
+    faces the camera (its side of the surface: a two-sided sheet seen from behind is another
+    reservoir's) and nothing lies between it and the camera (one shadow ray per reservoir)."""
+    sensor_obj = scene.sensors()[sensor]
+    w, h = (int(v) for v in sensor_obj.film().crop_size())
+    it = dr.zeros(mi.SurfaceInteraction3f, dr.width(r.valid))
+    it.p, it.n = r.p, r.n
+    ds, _ = sensor_obj.sample_direction(it, mi.Point2f(0.5), r.valid)
+    inside = r.valid & (ds.pdf > 0) & (ds.uv.x >= 0) & (ds.uv.x < w) & (ds.uv.y >= 0) & (ds.uv.y < h)
+    inside &= dr.dot(r.n, ds.d) > 0
+    return inside & ~scene.ray_test(it.spawn_ray_to(ds.p), inside)
+
+
+def carry_over(scene: mi.Scene, sensor: int, new, store):
+    """Alg. A8's store after sensor ``sensor`` rendered reservoirs ``new``: ``new`` plus the
+    valid reservoirs of ``store`` that the sensor does not see (other views' surfaces, or
+    surfaces hidden from this view); the ones it sees are replaced by ``new``."""
+    if store is None:
+        return new
+    keep = dr.compress(store.valid & ~seen_by(scene, sensor, store))
+    carried = dr.gather(Reservoirs(), store, keep)
+    n_new, n_old = dr.width(new.valid), dr.width(keep)
+    merged = dr.zeros(Reservoirs(), n_new + n_old)
+    dr.scatter(merged, new, dr.arange(mi.UInt32, n_new))
+    if n_old:
+        dr.scatter(merged, carried, n_new + dr.arange(mi.UInt32, n_old))
+    dr.eval(merged)
+    return merged
+
+
 def _visible(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool) -> mi.Bool:
     """True where light vertex ``y`` is unoccluded from ``si`` (False where inactive)."""
     return active & ~scene.ray_test(si.spawn_ray_to(y.p), active)

@@ -61,6 +61,10 @@ class ReSTIRSampler:
             screen-space neighbours of a sensor that has not moved): far less Python per step.
             ``None``: as torchir's other renders (:func:`torchir.backend.frozen_renders`, on
             unless ``TORCHIR_FREEZE=0``).
+        multiview: ``"per_sensor"`` (one reservoir chain per sensor) or ``"carry_over"`` (the
+            paper's Alg. 8: one store for all views; a view reuses every view's reservoirs near
+            its shading points, and a render replaces only the reservoirs its sensor sees;
+            :attr:`steps` then counts the store's steps under key -1).
 
     Example:
         >>> scene = torchir.Scene.builtin("oxalis_lite", resolution=32)
@@ -87,6 +91,7 @@ class ReSTIRSampler:
         preset: str = "restir",
         target: str = "shadowed",
         freeze: bool | None = None,
+        multiview: str = "per_sensor",
     ) -> None:
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a torchir.Scene, got {type(scene).__name__}")
@@ -121,6 +126,7 @@ class ReSTIRSampler:
             normal_threshold=normal_threshold,
             target=target,
             freeze=backend.frozen_renders() if freeze is None else bool(freeze),
+            multiview=multiview,
         )
 
     # ------------------------------------------------------------------ used by render()
