@@ -236,6 +236,23 @@ def test_switched_off_light_gets_an_unbiased_gradient(oxalis, preset):
     assert abs(est - ref) < 4 * math.hypot(se, ref_se), (est, ref)
 
 
+def test_trainer_recovers_a_texture_started_at_zero():
+    """Through the trainer, a texture initialised at its lower bound 0: every texel must leave
+    0 (before the p̂ = 0 remainder, ReSTIR left all of them at 0 forever: measured at 64², 60
+    steps, parameter error 0.464 against 0.124 now and 0.126 with the plain integrator)."""
+    import lightning.pytorch as pl
+
+    from torchir.training import InverseRenderingModule, ViewDataModule
+
+    module = InverseRenderingModule(scene="oxalis_lite", resolution=16, spp=2, lr=0.05, sampler={"type": "restir", "burn_in": 2},
+                                    parameters={KEY: {"init": 0.0, "bounds": [0.0, 1.0]}})
+    trainer = pl.Trainer(max_steps=6, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False)
+    trainer.fit(module, datamodule=ViewDataModule(target_spp=64))
+    latent = module.scene_parameters[0].latent.detach()
+    assert float((latent > 0).float().mean()) > 0.9, int((latent == 0).sum())
+
+
 def test_render_asks_for_the_remainder_only_when_a_differentiated_value_has_a_zero(oxalis, monkeypatch):
     """torchir's render passes ``zero_remainder`` = whether a differentiated material or
     emitter value has an exact 0 entry (geometry keys and non-differentiated values do not
