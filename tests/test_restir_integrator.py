@@ -105,9 +105,24 @@ def _image(lanes: mi.Color3f, spp: int, hw) -> np.ndarray:
     return _np(lanes).T.reshape(hw[0], hw[1], spp, 3).mean(2)
 
 
-def _nee(scene: mi.Scene, seed: int, spp: int) -> np.ndarray:
+def _mitsuba_camera(scene: mi.Scene, seed: int, spp: int):
+    """As ``_camera``, with Mitsuba's own ``ADIntegrator.sample_rays`` (which draws an aperture
+    sample for a thin lens, then a time sample for an open shutter) on the sampler a step seeds."""
+    from mitsuba.python.ad.integrators.common import ADIntegrator
+
+    sensor = scene.sensors()[0]
+    w, h = (int(v) for v in sensor.film().crop_size())
+    sampler = sensor.sampler().fork()
+    sampler.set_sample_count(spp)
+    sampler.set_samples_per_wavefront(spp)
+    sampler.seed(seed, w * h * spp)
+    ray, weight, _ = ADIntegrator.sample_rays(None, scene, sensor, sampler)
+    return sampler, scene.ray_intersect(mi.Ray3f(ray)), mi.Color3f(weight), (h, w)
+
+
+def _nee(scene: mi.Scene, seed: int, spp: int, camera=_camera) -> np.ndarray:
     """Next-event estimation with Mitsuba's own emitter sampling (visibility tested)."""
-    sampler, si, weight, hw = _camera(scene, seed, spp)
+    sampler, si, weight, hw = camera(scene, seed, spp)
     valid = si.is_valid()
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(valid), True, valid)
     fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), valid)
@@ -316,6 +331,24 @@ def test_render_api(point):
     assert _msg(RuntimeError, _integrator().render_backward, point, None, grad) == "render_backward() needs a render() of the same sensor first"
 
 
+def test_thin_lens_camera_with_an_open_shutter(point):
+    """A defocused thin-lens camera whose shutter is open: the step draws the aperture sample,
+    then the time, as Mitsuba's ``sample_rays``, so B.1 is NEE on Mitsuba's own camera rays
+    (and not on the pinhole rays through the lens centre)."""
+    base = _dict(False, res=4)
+    lens = dict(base["sensor"], type="thinlens", aperture_radius=0.4, focus_distance=1.0,
+                shutter_open=0.0, shutter_close=0.5)
+    scene = _with(4, sensor=lens)
+    sensor = scene.sensors()[0]
+    assert sensor.needs_aperture_sample() and sensor.shutter_open_time() == 0.5
+    img, _ = _integrator(**B1, freeze=False).step(scene, 0, 4, 2)  # (Mitsuba 3.9's thinlens cannot be frozen)
+    want = _nee(scene, 4, 2, camera=_mitsuba_camera)
+    assert want.max() > 0.1 and (want == 0).any()
+    np.testing.assert_allclose(_np(img), want, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(_np(img), _nee(scene, 4, 2), rtol=0.05)  # the check can tell the lens apart
+    np.testing.assert_allclose(_nee(point, 4, 2, camera=_mitsuba_camera), _nee(point, 4, 2), rtol=1e-5, atol=1e-6)
+
+
 # ------------------------------------------------------------------------------ reuse, exact on one point light
 REUSE = {"both": {}, "temporal": {"spatial": False}, "spatial": {"temporal": False}}
 
@@ -444,6 +477,7 @@ def test_burn_in_and_step_state(point, monkeypatch):
     st = i.states[0]
     camera = (tuple(np.array(point.sensors()[0].world_transform().matrix).ravel().tolist()), RES, RES, 2)
     assert st.camera == camera and calls[3][2] == camera and cache.prev_camera == camera
+    assert calls[1][2] == calls[2][2] == camera  # later burn-in passes search the previous one's screen
     assert st.steps == 1 and st.prev is cache.lanes and cache.prev is calls[3][1] and cache.spp == 2 and cache.sensor == 0
     assert dr.width(cache.lanes.W) == RES * RES * 2
     assert st.lights == i._emitter_watch(point) and set(i.timings) >= {"burn_in"} and i.timings["burn_in"] > 0
@@ -609,6 +643,7 @@ def test_frozen_and_traced_passes_agree(multi):
             searches[freeze, backend].append(i._neighbour_search.last)
             stages = set(i.timings) - {"burn_in"}
             assert stages == ({"pass"} if i.last_pass_frozen else {"ris", "nn", "combine", "develop"})
+            assert all(type(v) is float and v >= 0 for v in i.timings.values())  # durations, not placeholders
     params["blocker.to_world"] = base
     params.update()
     assert flags[False, "grid"] == [False] * 5
@@ -623,6 +658,37 @@ def test_frozen_and_traced_passes_agree(multi):
     b2 = _integrator(candidates=2, temporal=False, spatial=False)
     b2.step(multi, 0, 0, 1)
     assert b2.last_pass_frozen and b2._neighbour_search.last is None and set(b2.timings) == {"burn_in", "pass"}
+
+
+def test_a_failing_frozen_pass_falls_back_loudly(point, monkeypatch):
+    """A frozen pass that raises: one warning, the pass runs traced (the same image) and the
+    integrator stays unfrozen from then on (no second attempt, no second warning)."""
+    import warnings
+
+    i = _integrator(**B1)
+    attempts = []
+
+    def broken(*args):
+        attempts.append(args)
+        raise RuntimeError("replay failed")
+
+    def ready(scene):
+        i._frozen_pass = broken
+        return True
+
+    monkeypatch.setattr(i, "_frozen_pass_ready", ready)
+    with pytest.warns(UserWarning) as record:
+        img, cache = i.step(point, 0, 2, 2)
+    assert [str(w.message) for w in record] == [
+        "frozen ReSTIR pass failed (RuntimeError('replay failed')); this integrator now runs unfrozen"]
+    np.testing.assert_allclose(_np(img), _nee(point, 2, 2), rtol=1e-5, atol=1e-6)
+    assert len(attempts) == 1 and i.freeze is False and not i.last_pass_frozen and cache.zero is not None
+    assert set(i.timings) == {"burn_in", "ris", "develop"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        img, _ = i.step(point, 0, 3, 2)
+    np.testing.assert_allclose(_np(img), _nee(point, 3, 2), rtol=1e-5, atol=1e-6)
+    assert len(attempts) == 1 and not i.last_pass_frozen
 
 
 # ------------------------------------------------------------------------------ gradients
@@ -796,6 +862,47 @@ def test_carry_over_keeps_what_the_rendering_view_does_not_see():
     per.step(scene, 0, 1, 1)
     per.step(scene, 3, 2, 1)
     assert set(per.states) == {0, 3} and dr.width(per.states[3].prev.valid) == RES * RES
+
+
+def test_carry_over_search_is_frozen_and_equals_the_traced_one():
+    """The store's neighbours come from reprojection (its points bucketed by their pixel in the
+    rendering film): a pure Dr.Jit pass, frozen like the screen search, whose replays follow the
+    store's changing size; frozen and traced runs over the views give the same images."""
+    scene = _views_scene()
+    images = {}
+    for freeze in (True, False):
+        i = _integrator(candidates=2, neighbors=3, burn_in=1, multiview="carry_over", freeze=freeze)
+        images[freeze] = []
+        for step, view in enumerate((0, 3, 1, 0, 3, 1, 0)):
+            images[freeze].append(_np(i.step(scene, view, step, 1)[0]))
+            if step > 0:
+                assert i.last_pass_frozen == freeze and i._neighbour_search.last == "reprojected"
+        assert dr.width(i.states[restir_di.STORE].prev.valid) > RES * RES  # the store outgrew one view
+    for a, b in zip(images[True], images[False]):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_knn_reprojected_equals_brute_force():
+    """Against brute force on random points: the k nearest within the radius among the points
+    bucketed into the window pixels around each query's pixel (ties by index)."""
+    rng = np.random.default_rng(4)
+    w, h, spp, k, radius = 6, 5, 2, 3, 0.35
+    n = 70
+    pts = rng.random((n, 3)).astype(np.float32)
+    pix = rng.integers(0, w * h, n)
+    valid = rng.random(n) > 0.2
+    q = rng.random((w * h * spp, 3)).astype(np.float32)
+    windows = rng.integers(1, 3, w * h * spp)
+    idx, ok = _knn.knn_reprojected(mi.Point3f(*pts.T), mi.Bool(valid), mi.UInt32(pix.astype(np.uint32)), mi.Point3f(*q.T),
+                                   w, h, spp, k, radius, mi.UInt32(windows.astype(np.uint32)))
+    px, py = pix % w, pix // w
+    for lane in range(w * h * spp):
+        qx, qy, win = (lane // spp) % w, (lane // spp) // w, windows[lane]
+        cand = [j for j in range(n) if valid[j] and abs(px[j] - qx) <= win and abs(py[j] - qy) <= win]
+        d2 = {j: float(((pts[j] - q[lane]) ** 2).sum()) for j in cand}
+        want = sorted((j for j in cand if d2[j] < radius**2), key=lambda j: (d2[j], j))[:k]
+        got = [int(np.array(idx[t])[lane]) for t in range(k) if bool(np.array(ok[t])[lane])]
+        assert got == want, lane
 
 
 def test_emitter_gradients_obey_eulers_identity(multi):

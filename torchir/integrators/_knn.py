@@ -247,6 +247,73 @@ def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: 
     return _top_k_scan((dr.zeros(mi.UInt32, n),), k, n, r2, cond, body)
 
 
+def bucket_by_pixel(valid: mi.Bool, pixel: mi.UInt32, pixels: int) -> tuple[mi.UInt32, mi.UInt32, mi.UInt32]:
+    """Counting sort of points by ``pixel`` (``valid`` ones only): ``(order, starts, counts)``,
+    the points of pixel ``i`` being ``order[starts[i] : starts[i] + counts[i]]``. Run it traced:
+    ``scatter_inc`` inside a frozen function corrupted memory on replay (Dr.Jit 1.5)."""
+    n = dr.width(valid)
+    counts = dr.zeros(mi.UInt32, pixels)
+    slot = dr.scatter_inc(counts, pixel, valid)
+    dr.eval(slot, counts)
+    starts = dr.prefix_sum(counts)  # exclusive
+    order = dr.zeros(mi.UInt32, max(n, 1))
+    dr.scatter(order, dr.arange(mi.UInt32, n), dr.gather(mi.UInt32, starts, pixel, valid) + slot, valid)
+    dr.eval(order, starts)
+    return order, starts, counts
+
+
+def knn_in_buckets(points: mi.Point3f, buckets: tuple, queries: mi.Point3f, width: int, height: int, spp: int,
+                   k: int, radius: float, windows: mi.UInt32):
+    """k nearest ``points`` strictly closer than ``radius`` among those bucketed
+    (:func:`bucket_by_pixel`) into the pixels within ``windows`` (one half-width per query) of
+    each query's pixel; the queries are ``width * height * spp`` lanes in :class:`ScreenLayout`
+    order. Pure Dr.Jit, no host copies (it can be frozen). Returns ``k`` ``(index, ok)`` columns
+    like :func:`knn_kdtree` (``index`` into ``points``)."""
+    order, starts, counts = buckets
+    nq = width * height * spp
+    if dr.width(queries) != nq:
+        raise ValueError(f"knn_in_buckets: queries must have {nq} lanes ({width}x{height}x{spp}), got {dr.width(queries)}")
+    q_pix = dr.arange(mi.UInt32, nq) // dr.opaque(mi.UInt32, spp)
+    w_o, h_o = dr.opaque(mi.Int32, width), dr.opaque(mi.Int32, height)
+    qx, qy = mi.Int32(q_pix) % w_o, mi.Int32(q_pix) // w_o
+    win_q = mi.UInt32(windows)
+    side_q = 2 * win_q + 1
+    cells_q = side_q * side_q
+    r2 = dr.opaque(mi.Float, radius * radius)
+
+    def cond(c, pos, end, *best):
+        return (pos < end) | (c < cells_q)
+
+    def body(c, pos, end, *best):
+        bd, bi = list(best[:k]), list(best[k:])
+        in_range = pos < end
+        j = dr.gather(mi.UInt32, order, pos, in_range)
+        pj = dr.gather(mi.Point3f, points, j, in_range)
+        d2 = dr.squared_norm(pj - queries)
+        _insert_top_k(bd, bi, in_range & (d2 < r2), mi.Float(d2), mi.UInt32(j))
+        load = ~in_range  # the next pixel of the window once the current one is exhausted
+        cx = qx + mi.Int32(c % side_q) - mi.Int32(win_q)
+        cy = qy + mi.Int32(c // side_q) - mi.Int32(win_q)
+        inside = (cx >= 0) & (cx < w_o) & (cy >= 0) & (cy < h_o)
+        cell = mi.UInt32(cy * w_o + cx)
+        s0 = dr.gather(mi.UInt32, starts, cell, load & inside)
+        cnt = dr.gather(mi.UInt32, counts, cell, load & inside)
+        pos = dr.select(in_range, pos + 1, dr.select(inside, s0, 0))
+        end = dr.select(in_range, end, dr.select(inside, s0 + cnt, 0))
+        return (dr.select(load, c + 1, c), pos, end, *bd, *bi)
+
+    head = (dr.zeros(mi.UInt32, nq), dr.zeros(mi.UInt32, nq), dr.zeros(mi.UInt32, nq))
+    return _top_k_scan(head, k, nq, r2, cond, body)
+
+
+def knn_reprojected(points: mi.Point3f, valid: mi.Bool, pixel: mi.UInt32, queries: mi.Point3f, width: int,
+                    height: int, spp: int, k: int, radius: float, windows: mi.UInt32):
+    """:func:`knn_in_buckets` of the ``valid`` points bucketed by their ``pixel`` in the
+    queries' film (any number of points, from any views)."""
+    buckets = bucket_by_pixel(valid, pixel, width * height)
+    return knn_in_buckets(points, buckets, queries, width, height, spp, k, radius, windows)
+
+
 def _default_backend() -> str:
     return "kdtree" if (have_scipy() and not mi.variant().startswith("cuda")) else "grid"
 

@@ -350,11 +350,14 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         k = self.neighbors if self.spatial else 1
         static = source != "temporal" or prev_camera == camera  # same view, same lane layout
         layout = _knn.ScreenLayout(w, h, spp, st.window) if static else None
-        freeze = self.freeze and (source == "none" or (layout is not None and self.nn_backend in ("auto", "screen")))
+        reproject = self.multiview == "carry_over" and source == "temporal"  # the store: any views
+        freeze = self.freeze and (source == "none" or reproject or (layout is not None and self.nn_backend in ("auto", "screen")))
         if freeze:
             freeze = self._frozen_pass_ready(scene)
         stats = PassStats(camera=camera, k=k if source != "none" else 0)
-        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout, bool(zero_remainder))
+        # the store's points bucketed by their pixel in this film (traced: see bucket_by_pixel)
+        buckets = _knn.bucket_by_pixel(*project(sensor_obj, prev), w * h) if reproject else None
+        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout, bool(zero_remainder), buckets)
         t0 = _tic()
         if freeze:  # traced once per configuration, then replayed (no Python tracing, no codegen)
             try:
@@ -365,7 +368,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                 warnings.warn(f"frozen ReSTIR pass failed ({error!r}); this integrator now runs unfrozen", stacklevel=2)
         if freeze:
             stats.timings = {"pass": _tic() - t0}
-            self._neighbour_search.last = "screen" if source != "none" else None
+            self._neighbour_search.last = None if source == "none" else ("reprojected" if reproject else "screen")
         else:
             timings: dict[str, float] = {}
             ray_weight, image, r, n_ok, zero = self._pass(mi.UInt32(seed), *args, timings)
@@ -394,7 +397,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self._frozen_pass, self._geometry_frozen = dr.freeze(self._pass), now
         return True
 
-    def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, timings):
+    def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, buckets, timings):
         """The resampling pass on Dr.Jit values only (so it can be frozen): camera rays,
         streaming RIS, the neighbour search (``screen`` when frozen) and the combination.
         ``timings`` (a dict, or None when frozen): seconds per stage, measured with syncs."""
@@ -443,7 +446,11 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             # screen window per query: ceil(radius / its pixel footprint), at most layout.window
             footprint = pi.t * dr.norm(ray.d_x - ray.d)
             windows = mi.UInt32(dr.clip(dr.ceil(radius / dr.select(footprint > 0, footprint, radius)), 1, 3))
-            if timings is None:  # frozen: the screen search (pure Dr.Jit, no host copies)
+            if buckets is not None:  # the store (multiview="carry_over"): reprojected to this film
+                nbr, ok = _knn.knn_in_buckets(src.p, buckets, r.p, w, h, spp, k, radius, windows)
+                ok = [o & r.valid for o in ok]
+                self._neighbour_search.last = "reprojected"
+            elif timings is None:  # frozen: the screen search (pure Dr.Jit, no host copies)
                 nbr, ok = _knn.knn_screen(src.p, src.valid, r.p, layout, k, radius, exclude_self, windows)
                 ok = [o & r.valid for o in ok]
             else:
@@ -641,17 +648,28 @@ class ReSTIRDirectIntegrator(RBIntegrator):
 
 
 # ---------------------------------------------------------------------- helpers
-def seen_by(scene: mi.Scene, sensor: int, r) -> mi.Bool:
-    """Which reservoirs ``r`` sensor ``sensor`` sees: their shading point projects into its film,
-    faces the camera (its side of the surface: a two-sided sheet seen from behind is another
-    reservoir's) and nothing lies between it and the camera (one shadow ray per reservoir)."""
-    sensor_obj = scene.sensors()[sensor]
+def project(sensor_obj: mi.Sensor, r) -> tuple[mi.Bool, mi.UInt32]:
+    """``(inside, pixel)`` of reservoirs ``r`` in a sensor's film: ``inside`` where the shading
+    point projects into the film and faces the camera (its side of the surface: a two-sided
+    sheet seen from behind is another reservoir's), ``pixel`` its row-major pixel index."""
     w, h = (int(v) for v in sensor_obj.film().crop_size())
     it = dr.zeros(mi.SurfaceInteraction3f, dr.width(r.valid))
     it.p, it.n = r.p, r.n
     ds, _ = sensor_obj.sample_direction(it, mi.Point2f(0.5), r.valid)
     inside = r.valid & (ds.pdf > 0) & (ds.uv.x >= 0) & (ds.uv.x < w) & (ds.uv.y >= 0) & (ds.uv.y < h)
     inside &= dr.dot(r.n, ds.d) > 0
+    pixel = mi.UInt32(dr.clip(mi.Int32(ds.uv.y), 0, h - 1)) * w + mi.UInt32(dr.clip(mi.Int32(ds.uv.x), 0, w - 1))
+    return inside, pixel
+
+
+def seen_by(scene: mi.Scene, sensor: int, r) -> mi.Bool:
+    """Which reservoirs ``r`` sensor ``sensor`` sees: they project into its film facing it
+    (:func:`project`) and nothing lies between them and the camera (one shadow ray each)."""
+    sensor_obj = scene.sensors()[sensor]
+    inside, _ = project(sensor_obj, r)
+    it = dr.zeros(mi.SurfaceInteraction3f, dr.width(r.valid))
+    it.p, it.n = r.p, r.n
+    ds, _ = sensor_obj.sample_direction(it, mi.Point2f(0.5), inside)
     return inside & ~scene.ray_test(it.spawn_ray_to(ds.p), inside)
 
 
