@@ -646,7 +646,7 @@ def test_multiview_keeps_one_chain_per_sensor():
     d = oxalis_lite.build(resolution=16, texture=4, dim_lights=1, hidden_lights=1)
     d["sensor_b"] = torchir.scenes._common.perspective([0.5, 0.2, 3.0], [0, 0, 0], [0, 1, 0], 40.0, 16, 16)
     scene = torchir.Scene.from_dict(d)
-    r = ReSTIRSampler(scene, candidates=2, burn_in=1)
+    r = ReSTIRSampler(scene, candidates=2, burn_in=1, multiview="per_sensor")
     interleaved = {0: [], 1: []}
     for step in range(3):
         for view in (0, 1):
@@ -654,7 +654,7 @@ def test_multiview_keeps_one_chain_per_sensor():
     render(scene, {}, spp=1, seed=9, sensor=1, sampler=r)
     assert r.steps == {0: 3, 1: 4}
     for view in (0, 1):
-        alone = ReSTIRSampler(scene, candidates=2, burn_in=1)
+        alone = ReSTIRSampler(scene, candidates=2, burn_in=1, multiview="per_sensor")
         for step in range(3):
             img = render(scene, {}, spp=1, seed=step, sensor=view, sampler=alone)
             assert img.shape == (3, 16, 16) and torch.isfinite(img).all()

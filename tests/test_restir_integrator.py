@@ -170,7 +170,7 @@ def test_defaults_and_initial_state():
     got = {k: getattr(i, k) for k in restir_di._OPTIONS}
     assert got == {"candidates": 16, "neighbors": 8, "radius": 0.0, "normal_threshold": 0.9, "m_cap": 32.0,
                    "temporal": True, "spatial": True, "burn_in": 32, "grad_paths": "shared", "forward_only": False,
-                   "nn_backend": "auto", "target": "shadowed", "freeze": True, "multiview": "per_sensor"}
+                   "nn_backend": "auto", "target": "shadowed", "freeze": True, "multiview": "auto"}
     assert type(i.m_cap) is float and type(i.radius) is float and type(i.normal_threshold) is float
     assert i.states == {} and i.last == {} and i.timings == {} and i.stats == {}
     assert i.last_pass_frozen is False and i._frozen_pass is None and i._last_pass is None
@@ -211,7 +211,7 @@ def test_option_errors(monkeypatch):
     assert _msg(ValueError, _integrator, m_cap=-1) == "m_cap must be >= 0, got -1"
     assert _msg(ValueError, _integrator, burn_in=-1) == "burn_in must be >= 0, got -1"
     assert _integrator(neighbors=1, burn_in=0, candidates=1).neighbors == 1
-    assert _msg(ValueError, _integrator, multiview="shared") == "multiview must be 'per_sensor' or 'carry_over', got 'shared'"
+    assert _msg(ValueError, _integrator, multiview="shared") == "multiview must be 'auto', 'per_sensor' or 'carry_over', got 'shared'"
     for bad in (-0.5, float("inf"), float("nan")):
         assert _msg(ValueError, _integrator, radius=bad) == f"radius must be >= 0 (0 = automatic), got {bad}"
     assert _msg(ValueError, _integrator, grad_paths="both") == "grad_paths must be 'shared' or 'decorrelated', got 'both'"
@@ -858,7 +858,12 @@ def test_carry_over_keeps_what_the_rendering_view_does_not_see():
     assert cache.prev is store0 and i.states[restir_di.STORE].camera is None  # world-space search
     i.step(scene, 0, 3, 1)  # view 0 again: it sees (and replaces) its own old reservoirs
     assert dr.width(i.states[restir_di.STORE].prev.valid) < dr.width(store.valid)
-    per = _integrator(candidates=2, neighbors=2, burn_in=1)
+    auto = _integrator(candidates=2, neighbors=2, burn_in=1)  # "auto": the store with several sensors
+    auto.step(scene, 3, 1, 1)
+    single = _integrator(candidates=2, neighbors=2, burn_in=1)
+    single.step(mi.load_dict(_dict(False)), 0, 1, 1)
+    assert set(auto.states) == {restir_di.STORE} and set(single.states) == {0}
+    per = _integrator(candidates=2, neighbors=2, burn_in=1, multiview="per_sensor")
     per.step(scene, 0, 1, 1)
     per.step(scene, 3, 2, 1)
     assert set(per.states) == {0, 3} and dr.width(per.states[3].prev.valid) == RES * RES

@@ -59,7 +59,7 @@ def test_defaults(scene):
     assert _options(r) == {
         "candidates": 16, "neighbors": 8, "radius": 0.0, "m_cap": 32.0, "temporal": True, "spatial": True,
         "burn_in": 32, "grad_paths": "shared", "forward_only": False, "nn_backend": "auto",
-        "normal_threshold": 0.9, "target": "shadowed", "freeze": True, "multiview": "per_sensor",
+        "normal_threshold": 0.9, "target": "shadowed", "freeze": True, "multiview": "auto",
     }
     assert type(r.integrator.radius) is float and type(r.integrator.m_cap) is float
 

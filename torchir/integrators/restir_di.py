@@ -123,9 +123,9 @@ _OPTIONS = {
     "nn_backend": "auto",
     "target": "shadowed",
     "freeze": True,
-    "multiview": "per_sensor",
+    "multiview": "auto",
 }
-MULTIVIEW = ("per_sensor", "carry_over")
+MULTIVIEW = ("auto", "per_sensor", "carry_over")
 STORE = -1  # the state key of the one reservoir store of multiview="carry_over"
 
 
@@ -234,7 +234,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             raise ValueError(f"target must be 'shadowed' or 'unshadowed', got {cfg['target']!r}")
         self.target = cfg["target"]
         if cfg["multiview"] not in MULTIVIEW:
-            raise ValueError(f"multiview must be 'per_sensor' or 'carry_over', got {cfg['multiview']!r}")
+            raise ValueError(f"multiview must be 'auto', 'per_sensor' or 'carry_over', got {cfg['multiview']!r}")
         self.multiview = cfg["multiview"]
         self._neighbour_search = _knn.NeighbourSearch(self.nn_backend)
         self._emitter_watch = EmitterWatch()
@@ -256,6 +256,10 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             return {}
         out, stats = self._last_pass
         return _reservoir_stats(out, stats)
+
+    def carries_over(self, scene: mi.Scene) -> bool:
+        """One store for all views (Alg. 8): ``carry_over``, or ``auto`` with several sensors."""
+        return self.multiview == "carry_over" or (self.multiview == "auto" and len(scene.sensors()) > 1)
 
     @property
     def shadowed(self) -> bool:
@@ -302,7 +306,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         ``zero_remainder``: keep the ``p̂ = 0`` remainder of the gradient (module docstring).
 
         Returns ``(image (H, W, 3) TensorXf, StepCache)``."""
-        st = self.state(scene, STORE if self.multiview == "carry_over" else sensor)
+        carry = self.carries_over(scene)
+        st = self.state(scene, STORE if carry else sensor)
         t0 = _tic()
         if st.prev is None and self.temporal and self.burn_in > 0:
             st.lights = self._emitter_watch(scene)
@@ -317,7 +322,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             prev = None  # a light came on or moved: the old reservoirs cannot hold its samples
         lanes, out, stats = self.sample_paths(scene, sensor, seed, spp, prev, st, prev_camera, zero_remainder)
         ray_weight, image = lanes
-        if self.temporal and self.multiview == "carry_over":  # Alg. A8: one store for all views
+        if self.temporal and carry:  # Alg. A8: one store for all views
             st.prev, st.camera, st.lights = carry_over(scene, sensor, out, prev), None, lights
         elif self.temporal:
             st.prev, st.camera, st.lights = out, stats.camera, lights
@@ -350,7 +355,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         k = self.neighbors if self.spatial else 1
         static = source != "temporal" or prev_camera == camera  # same view, same lane layout
         layout = _knn.ScreenLayout(w, h, spp, st.window) if static else None
-        reproject = self.multiview == "carry_over" and source == "temporal"  # the store: any views
+        reproject = source == "temporal" and self.carries_over(scene)  # the store: any views
         freeze = self.freeze and (source == "none" or reproject or (layout is not None and self.nn_backend in ("auto", "screen")))
         if freeze:
             freeze = self._frozen_pass_ready(scene)
@@ -575,7 +580,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         (no reuse); ``params`` are the grad-enabled values it differentiates.
         """
         t0 = _tic()
-        st = self.state(scene, STORE if self.multiview == "carry_over" else cache.sensor)
+        st = self.state(scene, STORE if self.carries_over(scene) else cache.sensor)
         lanes, ray_weight, spp, zero = cache.lanes, cache.ray_weight, cache.spp, cache.zero
         if self.forward_only or (self.grad_paths == "decorrelated"):
             saved = (self.temporal, self.spatial)
