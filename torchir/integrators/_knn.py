@@ -110,51 +110,66 @@ def knn_grid(points: mi.Point3f, queries: mi.Point3f, k: int, radius: float, exc
     if n == 0 or nq == 0:
         return [dr.zeros(mi.UInt32, nq) for _ in range(k)], [dr.zeros(mi.Bool, nq) for _ in range(k)]
     lo, dims_s, cell_s = _grid_build(points, radius)
-    ncell = math.prod(dims_s)
     lo = [dr.opaque(mi.Float, v) for v in lo]
     dims = [dr.opaque(mi.Int32, v) for v in dims_s]
     cell = dr.opaque(mi.Float, cell_s)
     ix, iy, iz = _cell_coords(points, lo, dims, cell)
-    cid = mi.UInt32(ix + dims[0] * (iy + dims[1] * iz))
-    counts = dr.zeros(mi.UInt32, ncell)
-    slot = dr.scatter_inc(counts, cid)
-    dr.eval(slot, counts)
-    starts = dr.prefix_sum(counts)  # exclusive
-    sorted_idx = dr.zeros(mi.UInt32, n)
-    dr.scatter(sorted_idx, dr.arange(mi.UInt32, n), dr.gather(mi.UInt32, starts, cid) + slot)
-    dr.eval(sorted_idx, starts)
-
+    buckets = _counting_sort(mi.UInt32(ix + dims[0] * (iy + dims[1] * iz)), math.prod(dims_s))
     qx, qy, qz = _cell_coords(queries, lo, dims, cell)
     qself = dr.arange(mi.UInt32, nq)
+
+    def cell_at(c):  # the c-th of the query's 27 cells
+        cx, cy, cz = qx + mi.Int32(c % 3) - 1, qy + mi.Int32((c // 3) % 3) - 1, qz + mi.Int32(c // 9) - 1
+        inside = (cx >= 0) & (cx < dims[0]) & (cy >= 0) & (cy < dims[1]) & (cz >= 0) & (cz < dims[2])
+        return inside, mi.UInt32(cx + dims[0] * (cy + dims[1] * cz))
+
+    return _scan_buckets(buckets, points, queries, k, radius, 27, cell_at, (lambda j: j != qself) if exclude_self else None)
+
+
+def _counting_sort(key: mi.UInt32, keys: int, active: mi.Bool | bool = True) -> tuple[mi.UInt32, mi.UInt32, mi.UInt32]:
+    """Points sorted by ``key`` in ``[0, keys)`` (the ``active`` ones): ``(order, starts,
+    counts)``, key ``i``'s points being ``order[starts[i] : starts[i] + counts[i]]``."""
+    n = dr.width(key)
+    counts = dr.zeros(mi.UInt32, keys)
+    slot = dr.scatter_inc(counts, key, active)
+    dr.eval(slot, counts)
+    starts = dr.prefix_sum(counts)  # exclusive
+    order = dr.zeros(mi.UInt32, max(n, 1))
+    dr.scatter(order, dr.arange(mi.UInt32, n), dr.gather(mi.UInt32, starts, key, active) + slot, active)
+    dr.eval(order, starts)
+    return order, starts, counts
+
+
+def _scan_buckets(buckets: tuple, points: mi.Point3f, queries: mi.Point3f, k: int, radius: float, cells,
+                  cell_at, accept_also=None):
+    """The k nearest of ``points`` closer than ``radius`` to each query among the buckets
+    (:func:`_counting_sort`) of its ``cells`` cells, ``cell_at(c) -> (inside, bucket)`` naming
+    the c-th; one ``dr.while_loop`` scans a bucket's points, then loads the next bucket.
+    ``accept_also(j)``: a further test of point ``j``. Returns :func:`_top_k_scan`'s columns."""
+    order, starts, counts = buckets
+    nq = dr.width(queries)
     r2 = dr.opaque(mi.Float, radius * radius)
 
     def cond(c, pos, end, *best):
-        return (pos < end) | (c < 27)
+        return (pos < end) | (c < cells)
 
     def body(c, pos, end, *best):
         bd, bi = list(best[:k]), list(best[k:])
         in_range = pos < end
-        j = dr.gather(mi.UInt32, sorted_idx, pos, in_range)
+        j = dr.gather(mi.UInt32, order, pos, in_range)
         pj = dr.gather(mi.Point3f, points, j, in_range)
         d2 = dr.squared_norm(pj - queries)
         accept = in_range & (d2 < r2)
-        if exclude_self:
-            accept &= j != qself
+        if accept_also is not None:
+            accept &= accept_also(j)
         _insert_top_k(bd, bi, accept, mi.Float(d2), mi.UInt32(j))
-        # load the next of the 27 cells once the current one is exhausted
-        load = ~in_range
-        dz = mi.Int32(c // 9) - 1
-        dy = mi.Int32((c // 3) % 3) - 1
-        dx = mi.Int32(c % 3) - 1
-        cx, cy, cz = qx + dx, qy + dy, qz + dz
-        inside = (cx >= 0) & (cx < dims[0]) & (cy >= 0) & (cy < dims[1]) & (cz >= 0) & (cz < dims[2])
-        ncid = mi.UInt32(cx + dims[0] * (cy + dims[1] * cz))
-        s0 = dr.gather(mi.UInt32, starts, ncid, load & inside)
-        cnt = dr.gather(mi.UInt32, counts, ncid, load & inside)
+        load = ~in_range  # the next cell once the current bucket is exhausted
+        inside, bucket = cell_at(c)
+        s0 = dr.gather(mi.UInt32, starts, bucket, load & inside)
+        cnt = dr.gather(mi.UInt32, counts, bucket, load & inside)
         pos = dr.select(in_range, pos + 1, dr.select(inside, s0, 0))
         end = dr.select(in_range, end, dr.select(inside, s0 + cnt, 0))
-        c = dr.select(load, c + 1, c)
-        return (c, pos, end, *bd, *bi)
+        return (dr.select(load, c + 1, c), pos, end, *bd, *bi)
 
     head = (dr.zeros(mi.UInt32, nq), dr.zeros(mi.UInt32, nq), dr.zeros(mi.UInt32, nq))
     return _top_k_scan(head, k, nq, r2, cond, body)
@@ -248,18 +263,10 @@ def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: 
 
 
 def bucket_by_pixel(valid: mi.Bool, pixel: mi.UInt32, pixels: int) -> tuple[mi.UInt32, mi.UInt32, mi.UInt32]:
-    """Counting sort of points by ``pixel`` (``valid`` ones only): ``(order, starts, counts)``,
+    """The ``valid`` points sorted by ``pixel`` (a counting sort): ``(order, starts, counts)``,
     the points of pixel ``i`` being ``order[starts[i] : starts[i] + counts[i]]``. Run it traced:
     ``scatter_inc`` inside a frozen function corrupted memory on replay (Dr.Jit 1.5)."""
-    n = dr.width(valid)
-    counts = dr.zeros(mi.UInt32, pixels)
-    slot = dr.scatter_inc(counts, pixel, valid)
-    dr.eval(slot, counts)
-    starts = dr.prefix_sum(counts)  # exclusive
-    order = dr.zeros(mi.UInt32, max(n, 1))
-    dr.scatter(order, dr.arange(mi.UInt32, n), dr.gather(mi.UInt32, starts, pixel, valid) + slot, valid)
-    dr.eval(order, starts)
-    return order, starts, counts
+    return _counting_sort(pixel, pixels, valid)
 
 
 def knn_in_buckets(points: mi.Point3f, buckets: tuple, queries: mi.Point3f, width: int, height: int, spp: int,
@@ -269,7 +276,6 @@ def knn_in_buckets(points: mi.Point3f, buckets: tuple, queries: mi.Point3f, widt
     each query's pixel; the queries are ``width * height * spp`` lanes in :class:`ScreenLayout`
     order. Pure Dr.Jit, no host copies (it can be frozen). Returns ``k`` ``(index, ok)`` columns
     like :func:`knn_kdtree` (``index`` into ``points``)."""
-    order, starts, counts = buckets
     nq = width * height * spp
     if dr.width(queries) != nq:
         raise ValueError(f"knn_in_buckets: queries must have {nq} lanes ({width}x{height}x{spp}), got {dr.width(queries)}")
@@ -278,32 +284,13 @@ def knn_in_buckets(points: mi.Point3f, buckets: tuple, queries: mi.Point3f, widt
     qx, qy = mi.Int32(q_pix) % w_o, mi.Int32(q_pix) // w_o
     win_q = mi.UInt32(windows)
     side_q = 2 * win_q + 1
-    cells_q = side_q * side_q
-    r2 = dr.opaque(mi.Float, radius * radius)
 
-    def cond(c, pos, end, *best):
-        return (pos < end) | (c < cells_q)
-
-    def body(c, pos, end, *best):
-        bd, bi = list(best[:k]), list(best[k:])
-        in_range = pos < end
-        j = dr.gather(mi.UInt32, order, pos, in_range)
-        pj = dr.gather(mi.Point3f, points, j, in_range)
-        d2 = dr.squared_norm(pj - queries)
-        _insert_top_k(bd, bi, in_range & (d2 < r2), mi.Float(d2), mi.UInt32(j))
-        load = ~in_range  # the next pixel of the window once the current one is exhausted
+    def cell_at(c):  # the c-th pixel of the query's window
         cx = qx + mi.Int32(c % side_q) - mi.Int32(win_q)
         cy = qy + mi.Int32(c // side_q) - mi.Int32(win_q)
-        inside = (cx >= 0) & (cx < w_o) & (cy >= 0) & (cy < h_o)
-        cell = mi.UInt32(cy * w_o + cx)
-        s0 = dr.gather(mi.UInt32, starts, cell, load & inside)
-        cnt = dr.gather(mi.UInt32, counts, cell, load & inside)
-        pos = dr.select(in_range, pos + 1, dr.select(inside, s0, 0))
-        end = dr.select(in_range, end, dr.select(inside, s0 + cnt, 0))
-        return (dr.select(load, c + 1, c), pos, end, *bd, *bi)
+        return (cx >= 0) & (cx < w_o) & (cy >= 0) & (cy < h_o), mi.UInt32(cy * w_o + cx)
 
-    head = (dr.zeros(mi.UInt32, nq), dr.zeros(mi.UInt32, nq), dr.zeros(mi.UInt32, nq))
-    return _top_k_scan(head, k, nq, r2, cond, body)
+    return _scan_buckets(buckets, points, queries, k, radius, side_q * side_q, cell_at)
 
 
 def knn_reprojected(points: mi.Point3f, valid: mi.Bool, pixel: mi.UInt32, queries: mi.Point3f, width: int,
