@@ -87,11 +87,17 @@ class RenderPasses:
                 return self._adjoint(self.scene.mi_scene, sensor, grad_out, dr.opaque(mi.UInt32, seed), spp, params)
             except Exception as error:  # noqa: BLE001
                 self._unfreeze(error)
+                _clear_grads(params)  # a failed recording may have accumulated part of the gradient
         _adjoint(self.scene.mi_scene, sensor, grad_out, seed, spp, params)
 
     def _unfreeze(self, error: Exception) -> None:
         self.frozen = False
         warnings.warn(f"frozen render pass failed ({error!r}); this scene now renders unfrozen", stacklevel=3)
+
+
+def _clear_grads(params: dict) -> None:
+    for value in params.values():
+        dr.clear_grad(value)
 
 
 _PASSES: weakref.WeakKeyDictionary[Scene, RenderPasses] = weakref.WeakKeyDictionary()

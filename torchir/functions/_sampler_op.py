@@ -64,9 +64,7 @@ class SamplerRenderOp(BoundRenderOp):
         for name in self.grad_names:
             if is_geometry_key(name):
                 continue
-            value = self.values[name]
-            flat = value.array if dr.is_tensor_v(value) else dr.ravel(value)
-            if bool(dr.any(flat == 0)):
+            if bool(dr.any(dr.ravel(self.values[name]) == 0)):  # a tensor's ravel is its array
                 return True
         return False
 

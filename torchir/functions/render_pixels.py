@@ -21,7 +21,7 @@ import torch
 from ..scene import Scene
 from . import _args
 from ._bound_op import BoundRenderOp
-from ._passes import passes
+from ._passes import _clear_grads, passes
 
 __all__ = ["render_pixels"]
 
@@ -138,19 +138,30 @@ class _PixelPasses:
     def primal(self, sensor: int, index: mi.UInt32, seed: int, spp: int) -> mi.Color3f:
         count = dr.width(index)
         if self._frozen(("primal", sensor, count, spp)):
-            return self._primal(self.scene.mi_scene, sensor, index, dr.opaque(mi.UInt32, seed), spp, count)
+            try:
+                return self._primal(self.scene.mi_scene, sensor, index, dr.opaque(mi.UInt32, seed), spp, count)
+            except Exception as error:  # noqa: BLE001 - as RenderPasses: fall back, loudly
+                self.full_passes._unfreeze(error)
         return _primal_pass(self.scene.mi_scene, sensor, index, seed, spp, count)
 
     def one_path(self, sensor: int, lanes: tuple[mi.Float, mi.Float, mi.Float, mi.Float], seed: int) -> mi.Color3f:
         count = dr.width(lanes[0])
         if self._frozen(("one_path", sensor, count)):
-            return self._one_path(self.scene.mi_scene, sensor, *lanes, dr.opaque(mi.UInt32, seed), count)
+            try:
+                return self._one_path(self.scene.mi_scene, sensor, *lanes, dr.opaque(mi.UInt32, seed), count)
+            except Exception as error:  # noqa: BLE001
+                self.full_passes._unfreeze(error)
         return _one_path_pass(self.scene.mi_scene, sensor, *lanes, seed, count)
 
     def adjoint(self, sensor: int, index: mi.UInt32, δ_pixel: mi.Color3f, seed: int, spp: int, params: dict) -> None:
         count = dr.width(index)
         if self._frozen(("adjoint", sensor, count, spp)):
-            self._adjoint(self.scene.mi_scene, sensor, index, δ_pixel, dr.opaque(mi.UInt32, seed), spp, count, params)
+            try:
+                self._adjoint(self.scene.mi_scene, sensor, index, δ_pixel, dr.opaque(mi.UInt32, seed), spp, count, params)
+            except Exception as error:  # noqa: BLE001
+                self.full_passes._unfreeze(error)
+                _clear_grads(params)  # a failed recording may have accumulated part of the gradient
+                _adjoint_pass(self.scene.mi_scene, sensor, index, δ_pixel, seed, spp, count, params)
         else:
             _adjoint_pass(self.scene.mi_scene, sensor, index, δ_pixel, seed, spp, count, params)
         dr.eval()
