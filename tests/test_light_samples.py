@@ -36,7 +36,7 @@ def _lum(rgb):
     return 0.212671 * rgb[..., 0] + 0.715160 * rgb[..., 1] + 0.072169 * rgb[..., 2]
 
 
-def _scene(occluder: bool = False, weights=(1.0, 2.0, 3.0)) -> mi.Scene:
+def _scene(occluder: bool = False, weights=(1.0, 2.0, 3.0), lamp_scale: float = 0.5) -> mi.Scene:
     d = {
         "type": "scene",
         "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([2.0, 2.0, 1.0]),
@@ -47,7 +47,7 @@ def _scene(occluder: bool = False, weights=(1.0, 2.0, 3.0)) -> mi.Scene:
                  "to_world": mi.ScalarTransform4f().look_at(origin=P_SPOT.tolist(), target=[0, 0, 0], up=[0, 1, 0]),
                  "intensity": {"type": "rgb", "value": I_SPOT.tolist()}},
         "lamp": {"type": "rectangle",  # normal -z (rotated about x), at z = 2, side 1
-                 "to_world": mi.ScalarTransform4f().translate([0, 0, Z_AREA]).rotate([1, 0, 0], 180).scale(0.5),
+                 "to_world": mi.ScalarTransform4f().translate([0, 0, Z_AREA]).rotate([1, 0, 0], 180).scale(lamp_scale),
                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": L_AREA.tolist()},
                              "sampling_weight": weights[2]}},
     }
@@ -256,10 +256,11 @@ def test_sample_candidate_matches_emitter_sampling(occ):
         assert len(set(em[act].tolist())) == 3  # all three emitters are drawn
 
 
-@pytest.mark.parametrize("positive_only", [True, False])
+@pytest.mark.parametrize("positive_only", [True, False, None])
 def test_black_surface_gradient_needs_positive_only_off(positive_only):
     """Albedo 0: f = 0, but df/dA = Le g cos / pi (per channel). ``positive_only=False`` keeps
-    those lanes (value 0, gradient intact); the default drops them (p̂ = 0), gradient 0."""
+    those lanes (value 0, gradient intact); the default (None here: not passed) and True drop
+    them (p̂ = 0), gradient 0."""
     black = mi.load_dict({
         "type": "scene",
         "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([2.0, 2.0, 1.0]),
@@ -273,11 +274,34 @@ def test_black_surface_gradient_needs_positive_only_off(positive_only):
     params[key] = albedo
     params.update()
     si = _si(black)
-    f, p_hat = _light.eval_target(black, si, _sample(black, "point", P_POINT), mi.Bool(True), positive_only=positive_only)
+    kw = {} if positive_only is None else {"positive_only": positive_only}
+    f, p_hat = _light.eval_target(black, si, _sample(black, "point", P_POINT), mi.Bool(True), **kw)
     assert np.all(_np(f) == 0) and np.all(_np(p_hat) == 0)
     dr.backward(dr.sum(f.x + f.y + f.z))
     want = _point_closed_form(P_POINT, I_POINT) / ALBEDO  # Le g cos / pi, per channel
-    np.testing.assert_allclose(_np(dr.grad(albedo)).ravel(), want.sum(0) if not positive_only else 0.0, rtol=1e-4)
+    assert (want > 0).all()
+    np.testing.assert_allclose(_np(dr.grad(albedo)).ravel(), want.sum(0) if positive_only is False else 0.0, rtol=1e-4)
+
+
+@pytest.mark.parametrize("lamp_scale", [0.2, 0.8])
+def test_inv_pc_of_a_lamp_of_another_area(lamp_scale):
+    """``with_inv_pc`` on a lamp whose area 4 s^2 is not 1 (so p_c = pdf_sel / area is not 1/pdf_sel,
+    and the area-measure pdf is not its reciprocal), every shading point occluded (p̂ = 0):
+    1 / p_c = (sum of the weights / the emitter's weight) * (delta ? 1 : area), on every lane."""
+    scene = _scene(occluder=True, lamp_scale=lamp_scale)
+    m = 48
+    xy = np.random.default_rng(4).uniform(-0.4, 0.4, (m, 2))
+    si = _si(scene, xy)
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(11, m)
+    y, f, p_hat, w, inv_pc = _light.sample_candidate(scene, si, sampler, mi.Bool(True), with_inv_pc=True)
+    assert np.all(_np(p_hat) == 0) and np.all(_np(w) == 0)
+    em = np.array(y.em)
+    weight = {_emitter_index(scene, "point"): 1.0, _emitter_index(scene, "spot"): 2.0, _emitter_index(scene, "area"): 3.0}
+    area = 4 * lamp_scale ** 2
+    want = np.array([6.0 / weight[e] * (area if e == _emitter_index(scene, "area") else 1.0) for e in em])
+    assert len(set(em.tolist())) == 3  # all three emitters are drawn
+    np.testing.assert_allclose(_np(inv_pc), want, rtol=1e-4)
 
 
 def test_sample_candidate_selection_weights():

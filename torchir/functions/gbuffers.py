@@ -51,7 +51,9 @@ def render_gbuffers(
 
     Returns:
         ``(7, H, W)`` float32: albedo RGB, shading normal XYZ (world space), depth (world units
-        along the camera axis), in the order of ``GBUFFER_CHANNELS``.
+        along each camera ray, Mitsuba's ``depth`` AOV: not the distance along the camera axis,
+        so a wall facing the camera reads deeper towards the corners), in the order of
+        ``GBUFFER_CHANNELS``.
 
     Example:
         >>> scene = torchir.Scene.builtin("cbox", resolution=16)
