@@ -68,6 +68,8 @@ CLAIMS: list[Claim] = [
           lambda r: _restir_row(r, "ajar_painting")["step_ratio_to_B.2"], lambda v: v <= 2),
     Claim("restir", "ReSTIR training step / plain (direct) training step (ajar_painting, 128²)", "-", "<= 3x",
           lambda r: _restir_row(r, "ajar_painting")["train_step_ratio_to_direct"], lambda v: v <= 3),
+    Claim("restir_views", "multi-view: error² x time, per-sensor chains / carry-over store (burn-in 32)", "carry-over (Alg. 8)",
+          "> 1x", lambda r: _views_efficiency(r, 32), lambda v: v > 1),
     Claim("soak", "largest memory growth after warm-up, any technique", "-", "< 5%",
           lambda r: 100 * max(t["memory_growth"] for t in r), lambda v: v < 5, unit="%"),
     Claim("soak", "kernel-cache misses after warm-up, all techniques", "-", "0",
@@ -79,6 +81,11 @@ def _denoiser_ratio(r: dict, task: str, method: str) -> float:
     runs = [v for k, v in r["optimisation"].items() if k.startswith(task + "/")]
     ratios = sorted(run[method]["image_final"] / run["none"]["image_final"] for run in runs)
     return ratios[len(ratios) // 2]
+
+
+def _views_efficiency(r: dict, burn_in: int) -> float:
+    base, carry = (r["results"][f"{m} (burn-in {burn_in})"] for m in ("per-sensor", "carry-over"))
+    return (base["rms_error"] ** 2 * base["seconds"]) / (carry["rms_error"] ** 2 * carry["seconds"])
 
 
 def _restir_row(r: dict, scene: str, method: str = "ReSTIR (shadowed)") -> dict:
