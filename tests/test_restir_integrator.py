@@ -856,7 +856,10 @@ def test_carry_over_keeps_what_the_rendering_view_does_not_see():
     np.testing.assert_array_equal(_np(store.p).T[RES * RES:], _np(store0.p).T[kept])  # then the carried
     np.testing.assert_array_equal(_np(store.W)[RES * RES:], _np(store0.W)[kept])
     assert cache.prev is store0 and i.states[restir_di.STORE].camera is None  # world-space search
-    i.step(scene, 0, 3, 1)  # view 0 again: it sees (and replaces) its own old reservoirs
+    restored = _integrator(candidates=2, neighbors=2, burn_in=1, multiview="carry_over")
+    restored.load_state_dict(i.state_dict())  # the store survives a checkpoint
+    np.testing.assert_array_equal(_np(restored.step(scene, 0, 3, 1)[0]), _np(i.step(scene, 0, 3, 1)[0]))
+    # view 0 again: it sees (and replaces) its own old reservoirs
     assert dr.width(i.states[restir_di.STORE].prev.valid) < dr.width(store.valid)
     auto = _integrator(candidates=2, neighbors=2, burn_in=1)  # "auto": the store with several sensors
     auto.step(scene, 3, 1, 1)
