@@ -622,6 +622,10 @@ def test_state_dict_round_trip(point):
     assert (c.states[0].window, c.states[0].camera, c.states[0].lights) == (2, None, None)
     assert c.states[0].signature == d["signature"] and c.states[1].prev is None and c.states[1].camera == d["camera"]
     assert isinstance(c.states[1].camera[0], tuple) and c.states[1].lights == d["lights"]
+    assert c.state_dict()[1]["reservoirs"] is None  # a state without reservoirs saves as None
+    e = _integrator(**B1)  # no temporal reuse: no reservoirs kept
+    e.step(point, 0, 0, 1)
+    assert e.states[0].prev is None and e.state_dict()[0]["reservoirs"] is None and e.state_dict()[0]["steps"] == 1
 
 
 # ------------------------------------------------------------------------------ frozen pass
@@ -658,6 +662,12 @@ def test_frozen_and_traced_passes_agree(multi):
     b2 = _integrator(candidates=2, temporal=False, spatial=False)
     b2.step(multi, 0, 0, 1)
     assert b2.last_pass_frozen and b2._neighbour_search.last is None and set(b2.timings) == {"burn_in", "pass"}
+    for seed in (1, 2):  # the seed is an opaque input: replayed, not recorded again per seed
+        b2.step(multi, 0, seed, 1)
+    assert b2.last_pass_frozen and b2._frozen_pass.n_recordings == 1
+    grid = _integrator(candidates=2, temporal=False, spatial=False, nn_backend="grid")
+    grid.step(multi, 0, 0, 1)
+    assert grid.last_pass_frozen  # no reuse: frozen whatever the neighbour search
 
 
 def test_a_failing_frozen_pass_falls_back_loudly(point, monkeypatch):
@@ -739,13 +749,17 @@ def test_albedo_gradient(point, target):
     weights = np.random.default_rng(0).random((RES, RES, 3))
     fd = {(seed, spp): _texel_gradient(point, seed, spp, weights) for seed, spp in ((3, 2), (9, 1))}
     assert not np.allclose(fd[3, 2], fd[9, 1], rtol=0.05)  # the check can tell the paths apart
+    carry = {"grad_paths": "decorrelated", "multiview": "carry_over"}  # the pass reads the one store's state
     for opts, want in (({}, fd[3, 2]), ({"grad_paths": "decorrelated"}, fd[9, 1]), ({"forward_only": True}, fd[9, 1]),
-                       ({**B1, "grad_paths": "decorrelated"}, fd[9, 1]), (B1, fd[3, 2])):
+                       ({**B1, "grad_paths": "decorrelated"}, fd[9, 1]), (B1, fd[3, 2]), (carry, fd[9, 1])):
         i = _integrator(**{"candidates": 2, "neighbors": 2, "burn_in": 1, "target": target, **opts})
         saved = (i.temporal, i.spatial)
+        t0 = time.perf_counter()
         g, _ = _backward(point, i, weights, 3, 2, 9, 1)
+        elapsed = time.perf_counter() - t0
         np.testing.assert_allclose(g, want, rtol=2e-4, atol=1e-6, err_msg=str(opts))
-        assert (i.temporal, i.spatial) == saved and set(i.timings) >= {"backward"} and set(i.states) == {0}
+        assert (i.temporal, i.spatial) == saved and set(i.states) == ({restir_di.STORE} if opts is carry else {0})
+        assert type(i.timings["backward"]) is float and 0 < i.timings["backward"] <= elapsed  # within the call
 
 
 @pytest.mark.parametrize("opts", [B1, {"candidates": 3, "neighbors": 2, "burn_in": 1},
@@ -788,6 +802,131 @@ def test_zero_remainder_adds_nothing_where_no_value_is_zero(multi):
         grads.append(_backward(multi, i, weights, 5, 2, 9, 1)[0])
     assert np.abs(grads[0]).sum() > 0
     np.testing.assert_array_equal(grads[0], grads[1])
+
+
+def _remainder_gradient(scene: mi.Scene, seed: int, spp: int, candidates: int, shadowed: bool, weights: np.ndarray):
+    """d(sum(weights * image)) / d(texel) of the ``p̂ = 0`` remainder alone, written from the module
+    docstring on Alg. A1's random numbers (each candidate, then the draw that decides whether
+    the reservoir keeps it): the candidates drawn (1 / p_c > 0) with p̂ = 0 count (n0), the first
+    of them is y0, and a lane adds f(y0) n0 / (M p_c(y0)) where y0 is unoccluded.
+    Also returns the candidates' emitters, p̂ = 0 and drawn (1 / p_c > 0) masks (M, lanes)."""
+    params = mi.traverse(scene)
+    tex = mi.TensorXf(params[KEY])
+    value = mi.TensorXf(tex)
+    dr.enable_grad(value)
+    params[KEY] = value
+    params.update()
+    try:
+        sampler, si, weight, hw = _camera(scene, seed, spp)
+        valid = si.is_valid()
+        drawn = []
+        with dr.suspend_grad():
+            for _ in range(candidates):
+                y_m, _, phat_m, _, inv_pc = _light.sample_candidate(scene, si, sampler, valid, visibility=shadowed,
+                                                                    with_inv_pc=True)
+                sampler.next_1d(valid)
+                drawn.append((y_m, _np(phat_m), _np(inv_pc)))
+        zero = np.stack([(inv > 0) & (phat == 0) for _, phat, inv in drawn]) & np.array(valid)
+        n0 = zero.sum(0)
+        first = np.where(zero.any(0), zero.argmax(0), -1)
+        y0 = dr.zeros(_light.LightSample(), dr.width(valid))
+        inv0 = np.zeros(len(n0))
+        for m, (y_m, _, inv) in enumerate(drawn):
+            y0 = dr.select(mi.Bool(first == m), y_m, y0)
+            inv0 = np.where(first == m, inv, inv0)
+        w0 = n0 * inv0 / candidates
+        some = mi.Bool(w0 > 0)
+        w0 = np.where(np.array(some & ~scene.ray_test(si.spawn_ray_to(y0.p), some)), w0, 0.0)
+        f0, _ = _light.eval_target(scene, si, y0, mi.Bool(w0 > 0), visibility=False, positive_only=False)
+        adjoint = weights.reshape(-1, 3)[np.arange(len(n0)) // spp] / spp
+        contrib = weight * f0 * mi.Float(w0.astype(np.float32))
+        dr.backward(dr.sum(dr.dot(contrib, mi.Color3f(*adjoint.T.astype(np.float32)))))
+        return (_np(dr.grad(value)), np.stack([np.array(y.em) for y, _, _ in drawn]), zero,
+                np.stack([inv > 0 for _, _, inv in drawn]))
+    finally:
+        params[KEY] = tex
+        params.update()
+
+
+@pytest.fixture(scope="module")
+def edge_lit() -> mi.Scene:
+    """The multi scene plus a fourth light: an area light in the floor's plane, beside it, which
+    no floor point can sample (its cosine there is 0: 1 / p_c = 0, a candidate not drawn)."""
+    d = _dict(True)
+    d["edge"] = {"type": "rectangle", "to_world": T().translate([1.6, 0.0, 0.0]).scale(0.3),
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 2.0, 3.0]}}}
+    return mi.load_dict(d)
+
+
+@pytest.mark.parametrize("opts", [{}, {"target": "unshadowed"}, {"temporal": True, "spatial": True, "burn_in": 1},
+                                  {"temporal": True, "spatial": True, "burn_in": 1, "grad_paths": "decorrelated"}])
+def test_p_hat_zero_remainder_under_four_lights(edge_lit, opts):
+    """A black floor under four lights (f = 0 there, so its texels' gradient is the remainder
+    alone): the step's gradient (or its decorrelated pass's) equals the remainder written
+    independently. On floor lanes some candidates are not drawn (the edge light: 1 / p_c = 0,
+    not counted in n0), 1 / p_c = 4 (four lights) for the others, and the first and last p̂ = 0
+    candidates are of different lights on some lanes, so the count, 1 / p_c and the first are
+    each checked."""
+    scene = edge_lit
+    opts = {"candidates": 3, "neighbors": 2, "temporal": False, "spatial": False, "burn_in": 0, **opts}
+    params = mi.traverse(scene)
+    tex = mi.TensorXf(params[KEY])
+    weights = np.random.default_rng(5).random((RES, RES, 3))
+    params[KEY] = mi.TensorXf(np.zeros_like(np.array(tex)))
+    params.update()
+    try:
+        seed, spp = (9, 1) if opts.get("grad_paths") == "decorrelated" else (3, 2)
+        want, em, zero, drawn = _remainder_gradient(scene, seed, spp, 3, opts.get("target") != "unshadowed", weights)
+        n0 = zero.sum(0)
+        assert (n0 == 3).any() and np.abs(want).sum() > 0
+        assert (~drawn & (n0 > 0)).sum() >= 10  # undrawn candidates beside drawn p̂ = 0 ones (the edge light's)
+        last = 2 - zero[::-1].argmax(0)
+        lanes = np.arange(zero.shape[1])
+        assert ((n0 > 1) & (em[zero.argmax(0), lanes] != em[last, lanes])).any()
+        g, _ = _backward(scene, _integrator(**opts), weights, 3, 2, 9, 1)
+        np.testing.assert_allclose(g, want, rtol=2e-4, atol=1e-6)
+    finally:
+        params[KEY] = tex
+        params.update()
+
+
+def _gradient_of_step(scene, i, weights, seeds, spp, seed_grad, spp_grad):
+    """Steps with ``seeds`` (parameters held still but for the last), then the last one's gradient."""
+    params = mi.traverse(scene)
+    tex = mi.TensorXf(params[KEY])
+    for seed in seeds[:-1]:
+        i.step(scene, 0, seed, spp)
+    value = mi.TensorXf(tex)
+    dr.enable_grad(value)
+    params[KEY] = value
+    params.update()
+    try:
+        _, cache = i.step(scene, 0, seeds[-1], spp)
+        i.backward(scene, cache, mi.TensorXf(weights.astype(np.float32)), seed_grad, spp_grad)
+        return _np(dr.grad(value))
+    finally:
+        params[KEY] = tex
+        params.update()
+
+
+def test_decorrelated_and_forward_only_passes_are_steps_on_seed_grad(multi):
+    """``decorrelated``: the gradient pass is the step the integrator would have taken with
+    ``seed_grad`` against the same previous reservoirs and camera (replayed frozen, the screen
+    search), so its gradient is that step's ``shared`` one; ``forward_only``: that of plain RIS's
+    step on ``seed_grad``. Under three lights reuse changes the gradient, so both can fail."""
+    weights = np.random.default_rng(6).random((RES, RES, 3))
+    opts = {"candidates": 2, "neighbors": 2, "burn_in": 1}
+    dec = _integrator(grad_paths="decorrelated", **opts)
+    g_dec = _gradient_of_step(multi, dec, weights, (103, 3), 2, 9, 2)
+    assert dec.last_pass_frozen  # the gradient pass: the same view and lane layout as the reservoirs'
+    g_step = _gradient_of_step(multi, _integrator(**opts), weights, (103, 9), 2, 0, 1)
+    np.testing.assert_allclose(g_dec, g_step, rtol=1e-5, atol=1e-7)
+    fwd = _integrator(forward_only=True, **opts)
+    g_fwd = _gradient_of_step(multi, fwd, weights, (103, 3), 2, 9, 2)
+    assert (fwd.temporal, fwd.spatial) == (True, True)
+    plain = _integrator(**{**opts, "temporal": False, "spatial": False})
+    np.testing.assert_allclose(g_fwd, _gradient_of_step(multi, plain, weights, (9,), 2, 0, 1), rtol=1e-5, atol=1e-7)
+    assert not np.allclose(g_dec, g_fwd, rtol=0.05)  # reuse (the previous reservoirs) changes the gradient
 
 
 # ------------------------------------------------------------------------------ multi-view (Alg. 8)
@@ -837,6 +976,24 @@ def test_seen_by_the_four_sensors():
         counts.append(int(seen.sum()))
     assert counts[0] == valid.sum() and counts[2] == 0  # its own first hits; the back side
     assert 0 < counts[1] < counts[0] and 0 < counts[3] < counts[0]  # narrower; partly hidden or outside
+
+
+def test_project_gives_the_pixel_of_each_camera_ray():
+    """A step's reservoirs projected into the film that rendered them (a floor filling it): all
+    inside it, facing the camera, each in the pixel its camera ray was drawn through (lane //
+    spp, the film's edge pixels included); invalid reservoirs are outside."""
+    scene = mi.load_dict(_with_only_floor())
+    spp = 2
+    _, cache = _integrator(**B1).step(scene, 0, 3, spp)
+    valid = np.array(cache.lanes.valid)
+    assert valid.all()
+    inside, pixel = restir_di.project(scene.sensors()[0], cache.lanes)
+    assert np.array(inside).all()
+    # a point within a float32 rounding of a pixel's edge may go either way
+    assert (np.array(pixel) != np.arange(len(valid)) // spp).sum() <= 2
+    lanes = cache.lanes
+    lanes.valid = mi.Bool(np.arange(len(valid)) % 3 != 0)
+    assert np.array_equal(np.array(restir_di.project(scene.sensors()[0], lanes)[0]), np.arange(len(valid)) % 3 != 0)
 
 
 def test_carry_over_keeps_what_the_rendering_view_does_not_see():
@@ -1001,7 +1158,10 @@ def test_geometry_backward_adds_the_boundary_terms(point, monkeypatch):
             calls.append(args)
 
     weights = np.random.default_rng(3).random((RES, RES, 3))
-    g_plain, _ = _backward(point, _integrator(candidates=2, neighbors=2, burn_in=1), weights, 3, 2, 9, 1)
+    plain = _integrator(candidates=2, neighbors=2, burn_in=1)
+    monkeypatch.setattr(plain, "boundary_integrator", lambda: Spy())
+    g_plain, _ = _backward(point, plain, weights, 3, 2, 9, 1)
+    assert calls == []  # geometry=False by default: no boundary terms
     monkeypatch.setattr(i, "boundary_integrator", lambda: Spy())
     params = mi.traverse(point)
     tex = mi.TensorXf(params[KEY])

@@ -42,7 +42,14 @@ def parameter_entry(key: str, value: torch.Tensor, folder: Path) -> Any:
     else:
         path = files / f"{key}.npy"
         np.save(path, value.numpy())
-    return {"file": str(path.relative_to(folder)), "shape": list(value.shape), "mean": _rounded(value.reshape(-1, value.shape[-1]).mean(0))}
+    return {"file": str(path.relative_to(folder)), "shape": list(value.shape), "mean": _rounded(_summary_mean(value))}
+
+
+def _summary_mean(value: torch.Tensor) -> torch.Tensor:
+    """Per-channel mean of a ``(..., C)`` value with few channels; one mean for a flat ``(n,)`` one."""
+    if value.dim() >= 2 and value.shape[-1] <= INLINE_MAX:
+        return value.reshape(-1, value.shape[-1]).mean(0)
+    return value.mean()
 
 
 def write_results(module, folder: str | Path, step: int, views: Optional[list[int]] = None, images: bool = True) -> Path:
