@@ -801,7 +801,9 @@ def test_zero_remainder_adds_nothing_where_no_value_is_zero(multi):
         i.step = lambda *a, _o=original, _r=remainder, **kw: _o(*a, **{**kw, "zero_remainder": _r})
         grads.append(_backward(multi, i, weights, 5, 2, 9, 1)[0])
     assert np.abs(grads[0]).sum() > 0
-    np.testing.assert_array_equal(grads[0], grads[1])
+    # equal up to the order of float32 atomic adds across threads (seen: 2.8e-7 relative on a
+    # loaded machine); where the remainder contributes, it changes the gradient by O(1)
+    np.testing.assert_allclose(grads[0], grads[1], rtol=1e-5, atol=0)
 
 
 def _remainder_gradient(scene: mi.Scene, seed: int, spp: int, candidates: int, shadowed: bool, weights: np.ndarray):
