@@ -14,6 +14,7 @@ normal test against the floor, a small blocker casting a shadow, and background 
 """
 from __future__ import annotations
 
+import contextlib
 import gc
 import math
 import time
@@ -723,22 +724,30 @@ def _texel_gradient(scene, seed, spp, weights):
     return out
 
 
-def _backward(scene, i, weights, seed, spp, seed_grad, spp_grad, steps=2):
-    params = mi.traverse(scene)
+@contextlib.contextmanager
+def _texture_with_grad(params):
+    """The texture ``KEY`` as a fresh differentiable variable within the block (yielded);
+    the original is bound again after it."""
     tex = mi.TensorXf(params[KEY])
-    for s in range(steps - 1):
-        i.step(scene, 0, seed + 100 + s, spp)
     value = mi.TensorXf(tex)
     dr.enable_grad(value)
     params[KEY] = value
     params.update()
     try:
-        image, cache = i.step(scene, 0, seed, spp)
-        i.backward(scene, cache, mi.TensorXf(weights.astype(np.float32)), seed_grad, spp_grad)
-        return _np(dr.grad(value)), _np(image)
+        yield value
     finally:
         params[KEY] = tex
         params.update()
+
+
+def _backward(scene, i, weights, seed, spp, seed_grad, spp_grad, steps=2):
+    params = mi.traverse(scene)
+    for s in range(steps - 1):
+        i.step(scene, 0, seed + 100 + s, spp)
+    with _texture_with_grad(params) as value:
+        image, cache = i.step(scene, 0, seed, spp)
+        i.backward(scene, cache, mi.TensorXf(weights.astype(np.float32)), seed_grad, spp_grad)
+        return _np(dr.grad(value)), _np(image)
 
 
 @pytest.mark.parametrize("target", ["shadowed", "unshadowed"])
@@ -813,12 +822,7 @@ def _remainder_gradient(scene: mi.Scene, seed: int, spp: int, candidates: int, s
     of them is y0, and a lane adds f(y0) n0 / (M p_c(y0)) where y0 is unoccluded.
     Also returns the candidates' emitters, p̂ = 0 and drawn (1 / p_c > 0) masks (M, lanes)."""
     params = mi.traverse(scene)
-    tex = mi.TensorXf(params[KEY])
-    value = mi.TensorXf(tex)
-    dr.enable_grad(value)
-    params[KEY] = value
-    params.update()
-    try:
+    with _texture_with_grad(params) as value:
         sampler, si, weight, hw = _camera(scene, seed, spp)
         valid = si.is_valid()
         drawn = []
@@ -845,9 +849,6 @@ def _remainder_gradient(scene: mi.Scene, seed: int, spp: int, candidates: int, s
         dr.backward(dr.sum(dr.dot(contrib, mi.Color3f(*adjoint.T.astype(np.float32)))))
         return (_np(dr.grad(value)), np.stack([np.array(y.em) for y, _, _ in drawn]), zero,
                 np.stack([inv > 0 for _, _, inv in drawn]))
-    finally:
-        params[KEY] = tex
-        params.update()
 
 
 @pytest.fixture(scope="module")
@@ -895,20 +896,12 @@ def test_p_hat_zero_remainder_under_four_lights(edge_lit, opts):
 def _gradient_of_step(scene, i, weights, seeds, spp, seed_grad, spp_grad):
     """Steps with ``seeds`` (parameters held still but for the last), then the last one's gradient."""
     params = mi.traverse(scene)
-    tex = mi.TensorXf(params[KEY])
     for seed in seeds[:-1]:
         i.step(scene, 0, seed, spp)
-    value = mi.TensorXf(tex)
-    dr.enable_grad(value)
-    params[KEY] = value
-    params.update()
-    try:
+    with _texture_with_grad(params) as value:
         _, cache = i.step(scene, 0, seeds[-1], spp)
         i.backward(scene, cache, mi.TensorXf(weights.astype(np.float32)), seed_grad, spp_grad)
         return _np(dr.grad(value))
-    finally:
-        params[KEY] = tex
-        params.update()
 
 
 def test_decorrelated_and_forward_only_passes_are_steps_on_seed_grad(multi):
@@ -1106,18 +1099,10 @@ def test_mitsuba_render_and_render_backward(point):
     assert integrator.m_cap == 4.0 and integrator.candidates == 2
     weights = np.random.default_rng(1).random((RES, RES, 3))
     params = mi.traverse(point)
-    tex = mi.TensorXf(params[KEY])
-    value = mi.TensorXf(tex)
-    dr.enable_grad(value)
-    params[KEY] = value
-    params.update()
-    try:
+    with _texture_with_grad(params) as value:
         image = mi.render(point, params, integrator=integrator, spp=2, seed=3)
         dr.backward(dr.sum(image * mi.TensorXf(weights.astype(np.float32)), axis=None))
         g = _np(dr.grad(value))
-    finally:
-        params[KEY] = tex
-        params.update()
     np.testing.assert_allclose(_np(image), _nee(point, 3, 2), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(g, _texel_gradient(point, 3, 2, weights), rtol=2e-4, atol=1e-6)
     assert integrator.last == {}
@@ -1127,20 +1112,12 @@ def test_render_backward_passes_its_seed_and_spp(point):
     """``render_backward``'s seed and spp (0: the sensor's) reach the decorrelated pass."""
     weights = np.random.default_rng(2).random((RES, RES, 3))
     params = mi.traverse(point)
-    tex = mi.TensorXf(params[KEY])
     for spp_grad, want in ((1, _texel_gradient(point, 9, 1, weights)), (0, _texel_gradient(point, 9, 4, weights))):
         i = _integrator(candidates=2, neighbors=2, burn_in=1, grad_paths="decorrelated")
-        value = mi.TensorXf(tex)
-        dr.enable_grad(value)
-        params[KEY] = value
-        params.update()
-        try:
+        with _texture_with_grad(params) as value:
             i.render(point, seed=3, spp=2)
             i.render_backward(point, params, mi.TensorXf(weights.astype(np.float32)), seed=9, spp=spp_grad)
             g = _np(dr.grad(value))
-        finally:
-            params[KEY] = tex
-            params.update()
         np.testing.assert_allclose(g, want, rtol=2e-4, atol=1e-6)
         assert i.last == {}
 
@@ -1166,20 +1143,12 @@ def test_geometry_backward_adds_the_boundary_terms(point, monkeypatch):
     assert calls == []  # geometry=False by default: no boundary terms
     monkeypatch.setattr(i, "boundary_integrator", lambda: Spy())
     params = mi.traverse(point)
-    tex = mi.TensorXf(params[KEY])
     i.step(point, 0, 103, 2)
-    value = mi.TensorXf(tex)
-    dr.enable_grad(value)
-    params[KEY] = value
-    params.update()
-    try:
+    with _texture_with_grad(params) as value:
         _, cache = i.step(point, 0, 3, 2)
         grad_in = mi.TensorXf(weights.astype(np.float32))
         i.backward(point, cache, grad_in, 9, 1, geometry=True, params="the params")
         g = _np(dr.grad(value))
-    finally:
-        params[KEY] = tex
-        params.update()
     np.testing.assert_allclose(g, g_plain, rtol=1e-5, atol=1e-7)
     assert len(calls) == 1 and calls[0][0] is point and calls[0][1] == "the params" and calls[0][2] is grad_in
     assert calls[0][3:] == (0, 9, 1)
