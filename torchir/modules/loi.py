@@ -359,7 +359,7 @@ def _operators(t: _Term, canvas: tuple[int, int], support: tuple[int, int], trun
     ``canvas``) to its own cells; ``None`` when they are the identity (no aperture, same canvas)."""
     (ch, cw), (sh, sw) = canvas, support
     nh, nw = ch - 2 * t.trim, cw - 2 * t.trim
-    if t.alpha < MIN_SCALE and t.cell == 1 and (nh, nw) == (sh, sw):
+    if t.alpha < MIN_SCALE and (nh, nw) == (sh, sw):  # (alpha = 0 has 1-pixel cells)
         return None
     dev = str(like.device)
     return (
