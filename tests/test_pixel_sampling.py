@@ -475,3 +475,32 @@ def test_sampled_loss_skips_views_without_draws(monkeypatch):
     scored = sampled_loss(_FakeScene((h, w), 3), {"x": x}, batch, targets, [0, 1, 2], L2Loss(), seed=lambda v: v)
     assert [(c["sensor"], c["index"].tolist()) for c in calls] == [(0, [7]), (2, [3])]
     assert scored.weight.tolist() == [0.5, 0.25] and scored.radiance.shape == (2, 3)
+
+
+def test_sampled_loss_of_one_view_matches_the_per_view_path(monkeypatch):
+    """A batch of one view is sorted without per-view filtering; the draws, their order
+    (raster, duplicates as argsort leaves them), weights and loss are those of the general path;
+    draws outside that view are still left out."""
+    import torchir.functions as functions
+
+    h, w = 8, 8
+    g = torch.Generator().manual_seed(5)
+    images, targets = torch.rand(3, 3, h, w, generator=g), torch.rand(3, 3, h, w, generator=g)
+    local = torch.randint(0, h * w, (500,), generator=g)  # many repeated pixels
+    batch = PixelBatch(h * w + local, torch.rand(500, generator=g))
+    runs = []
+    for views, wanted in (([1], targets[1:2]), ([0, 1], targets[:2])):  # view 0 has no draws: the general path
+        calls: list[dict] = []
+        monkeypatch.setattr(functions, "render_pixels", _fake_render(calls, images))
+        runs.append((calls, sampled_loss(_FakeScene((h, w), 3), {"x": torch.tensor(2.0)}, batch, wanted, views, L2Loss(), seed=lambda v: v)))
+    (one_calls, one), (general_calls, general) = runs
+    assert [c["sensor"] for c in one_calls] == [c["sensor"] for c in general_calls] == [1]
+    assert torch.equal(one_calls[0]["index"], general_calls[0]["index"]) and one_calls[0]["index"].tolist() == sorted(local.tolist())
+    for field in ("radiance", "target", "weight"):
+        assert torch.equal(getattr(one, field), getattr(general, field)), field
+    assert torch.equal(one.loss, general.loss)
+    calls = []
+    monkeypatch.setattr(functions, "render_pixels", _fake_render(calls, images))
+    mixed = PixelBatch(torch.tensor([3, h * w + 9, 2 * h * w + 1, h * w + 4]), torch.tensor([1.0, 2.0, 3.0, 4.0]))
+    scored = sampled_loss(_FakeScene((h, w), 3), {"x": torch.tensor(1.0)}, mixed, targets[1:2], [1], L2Loss(), seed=lambda v: v)
+    assert [(c["sensor"], c["index"].tolist()) for c in calls] == [(1, [4, 9])] and scored.weight.tolist() == [4.0, 2.0]

@@ -173,6 +173,22 @@ def test_chi_square_of_draws():
     assert z < 3.09, chi2
 
 
+def test_draw_reads_the_same_probabilities_from_the_precomputed_pdf():
+    g = torch.Generator().manual_seed(7)
+    pmf = torch.rand(5000, generator=g, dtype=torch.float64) ** 4 + 1e-9
+    pmf[0] = pmf.sum() / 10  # entry 0 (no left neighbour in the CDF) is drawn too
+    cdf = _pmf.cumulative(pmf / pmf.sum())
+    pdf = torch.diff(cdf, prepend=cdf.new_zeros(1))  # as PixelSampler keeps it
+    index, prob = _pmf.draw(cdf, 50_000, torch.Generator().manual_seed(1))
+    index_pdf, prob_pdf = _pmf.draw(cdf, 50_000, torch.Generator().manual_seed(1), pdf)
+    assert torch.equal(index_pdf, index) and torch.equal(prob_pdf, prob)  # bit for bit, entry 0 included
+    assert bool((index == 0).any())
+    s = _sampler(seed=2, budget=300)
+    s.update_from_maps(torch.rand(1, H, W, generator=g))
+    batch = s.sample()
+    assert torch.equal(batch.weight, (1.0 / (300 * H * W * s.pdf[batch.index])).float())
+
+
 def test_huge_image_beyond_multinomial_limit():
     s = UniformPixelSampler(resolution=(4096, 8192), views=1, budget=10)  # 2^25 pixels
     batch = s.sample()

@@ -683,6 +683,19 @@ def test_pixel_step_refreshes_when_due_and_counts_stage1_paths(monkeypatch, fake
     assert len(sampler.updates) == 1 and model.step_metrics["paths_per_step"] == 5 * 3
 
 
+def test_pixel_step_evaluates_the_parameters_once(monkeypatch, fake_sampled_loss):
+    model = _scripted(monkeypatch, due_at=[0])
+    model._truth = {KEY: torch.full((3,), 0.5)}
+    evaluated = []
+    scene_values = model.scene_values
+    model.scene_values = lambda: evaluated.append(1) or scene_values()
+    data = SimpleNamespace(views=[0], targets=[torch.zeros(3, RES, RES)], saturation=None)
+    _step(model, [0], torch.zeros(1, 3, RES, RES), step=0, datamodule=data)
+    # Stage 1, the render and the parameter error all see the one evaluation
+    assert len(evaluated) == 1 and len(model.sampler.updates) == 1 and len(fake_sampled_loss) == 1
+    assert model.step_metrics["param_error"] == pytest.approx(model.parameter_error(model._truth))
+
+
 def test_pixel_step_without_stage1_paths_diagnostic(monkeypatch, fake_sampled_loss):
     model = _scripted(monkeypatch, due_at=[0], diagnostics={"ess_fraction": 1.0})
     model._truth = {}
@@ -932,6 +945,9 @@ def test_math_of_parameter_error():
     error = model.parameter_error({KEY: torch.full((3,), 0.5), GREEN: torch.full((3,), 0.5)})
     assert error == pytest.approx(math.sqrt(3 * 0.04 / 6))
     assert model.parameter_error({}) is None
+    truth = {KEY: torch.full((3,), 0.5)}
+    assert model.parameter_error(truth, model.scene_values()) == model.parameter_error(truth)
+    assert model.parameter_error(truth, {KEY: torch.full((3,), 0.5), GREEN: torch.zeros(3)}) == 0.0  # the values given
 
 
 # ------------------------------------- decorated methods (mutmut leaves them unmutated)

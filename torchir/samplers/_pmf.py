@@ -133,12 +133,17 @@ def cumulative(pmf: torch.Tensor) -> torch.Tensor:
     return cdf
 
 
-def draw(cdf: torch.Tensor, count: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def draw(
+    cdf: torch.Tensor, count: int, generator: torch.Generator, pdf: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """``count`` i.i.d. indices from the pmf of ``cdf`` by inverse CDF (spec A3, §5.4: unlike
     ``torch.multinomial``, no 2^24 category limit), and their realised probabilities
-    ``cdf[j] - cdf[j-1]`` (the pmf the draws really follow)."""
+    ``cdf[j] - cdf[j-1]`` (the pmf the draws really follow). ``pdf``: those differences
+    precomputed (``torch.diff(cdf, prepend=0)``, the same numbers), read with one gather."""
     u = torch.rand(count, generator=generator, dtype=torch.float64)
     index = torch.searchsorted(cdf, u, right=True).clamp_(max=cdf.numel() - 1)
+    if pdf is not None:
+        return index, pdf[index]
     upper = cdf[index]
     lower = torch.where(index > 0, cdf[(index - 1).clamp_min(0)], torch.zeros_like(upper))
     return index, upper - lower

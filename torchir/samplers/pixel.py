@@ -94,22 +94,34 @@ def sampled_loss(
     from ..functions import render_pixels  # Dr.Jit side, loaded on first use
 
     h, w = scene.resolution
-    view_of, local = batch.index // (h * w), batch.index % (h * w)
     rendered, wanted, weights = [], [], []
-    for position, view in enumerate(views):
-        chosen = (view_of == view).nonzero().squeeze(1)
-        if chosen.numel() == 0:
-            continue
-        # i.i.d. draws come in random order; traced in raster order, neighbouring lanes take
-        # coherent paths (measured: 5% of 256^2, render + backward 11.5 -> 9.0 ms)
-        chosen = chosen[local[chosen].argsort()]
-        pixels = local[chosen]
+    for position, view, chosen, pixels in _draws_by_view(batch.index, views, h * w):
         rendered.append(render_pixels(scene, params, pixels, spp=spp, seed=seed(view), sensor=view, spp_grad=spp_grad))
         wanted.append(targets[position].flatten(1).t()[pixels])
         weights.append(batch.weight[chosen])
     radiance, target, weight = torch.cat(rendered), torch.cat(wanted), torch.cat(weights)
     terms = loss.pixel_terms(radiance, target, len(views) * h * w)
     return SampledLoss((weight * terms).sum(), radiance, target, weight)
+
+
+def _draws_by_view(index: torch.Tensor, views: Sequence[int], pixels_per_view: int) -> list[tuple[int, int, torch.Tensor, torch.Tensor]]:
+    """``(position in views, view, positions in the batch, pixels)`` of each view with draws,
+    in raster order: i.i.d. draws come in random order, and traced in raster order neighbouring
+    lanes take coherent paths (measured: 5% of 256^2, render + backward 11.5 -> 9.0 ms)."""
+    if len(views) == 1 and index.numel() > 0:  # one view (the usual step): no filtering when every draw is in it
+        first = views[0] * pixels_per_view
+        low, high = (int(v) for v in torch.aminmax(index))
+        if first <= low and high < first + pixels_per_view:
+            pixels, chosen = (index - first).sort()  # the permutation argsort() gives
+            return [(0, views[0], chosen, pixels)]
+    view_of, local = index // pixels_per_view, index % pixels_per_view
+    out = []
+    for position, view in enumerate(views):
+        chosen = (view_of == view).nonzero().squeeze(1)
+        if chosen.numel() > 0:
+            chosen = chosen[local[chosen].argsort()]
+            out.append((position, view, chosen, local[chosen]))
+    return out
 
 
 def _check_budget(budget: object, pixel_count: int) -> int:
@@ -273,7 +285,7 @@ class PixelSampler:
         n = self.budget
         views = list(range(self.views)) if views is None else sorted({int(v) for v in views})
         if views == list(range(self.views)):
-            index, prob = _pmf.draw(self._cdf, n, self.generator)
+            index, prob = _pmf.draw(self._cdf, n, self.generator, self._pdf)
             m = self.pixel_count
         else:
             if not views or views[0] < 0 or views[-1] >= self.views:

@@ -177,11 +177,12 @@ class InverseRenderingModule(pl.LightningModule):
             p.project()
 
     @torch.no_grad()
-    def parameter_error(self, truth: dict[str, torch.Tensor]) -> Optional[float]:
-        """RMSE over all entries of the parameters with a known truth, or None."""
+    def parameter_error(self, truth: dict[str, torch.Tensor], values: Optional[dict[str, torch.Tensor]] = None) -> Optional[float]:
+        """RMSE over all entries of the parameters with a known truth, or None (``values``: the
+        current :meth:`scene_values`, when already computed)."""
         if not truth:
             return None
-        values = self.scene_values()
+        values = self.scene_values() if values is None else values
         sq = sum(float((values[k] - t.to(values[k])).square().sum()) for k, t in truth.items())
         n = sum(t.numel() for t in truth.values())
         return math.sqrt(sq / n)
@@ -251,25 +252,29 @@ class InverseRenderingModule(pl.LightningModule):
 
         return isinstance(self.sampler, PixelSampler)
 
-    def refresh_sampler(self, step: int) -> bool:
-        """Run the pixel sampler's Stage 1 if it is due at ``step``; True if it ran."""
+    def refresh_sampler(self, step: int, values: Optional[dict[str, torch.Tensor]] = None) -> bool:
+        """Run the pixel sampler's Stage 1 if it is due at ``step``; True if it ran (``values``:
+        the current :meth:`scene_values`, when already computed)."""
         data = self.trainer.datamodule if self._trainer is not None else None
         if data is None or not getattr(data, "targets", None):
             raise RuntimeError("pixel sampling needs the target views of a ViewDataModule (trainer.datamodule)")
-        values = self.scene_values()
+        values = self.scene_values() if values is None else values
         if not self.sampler.due(step, values, data.views):
             return False
         self.sampler.update(values, data.targets, self.loss_fn, views=data.views, step=step)
         return True
 
-    def sampled_loss(self, views: list[int], targets: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+    def sampled_loss(
+        self, views: list[int], targets: torch.Tensor, step: int, values: Optional[dict[str, torch.Tensor]] = None
+    ) -> tuple[torch.Tensor, torch.Tensor, int]:
         """The importance-weighted loss of one pixel batch (paper 000, E16), its weighted squared
-        error (for logging) and the number of paths traced."""
+        error (for logging) and the number of paths traced (``values``: the current
+        :meth:`scene_values`, when already computed)."""
         from ..samplers import sampled_loss
 
         batch = self.sampler.sample(views)
         scored = sampled_loss(
-            self.scene, self.scene_values(), batch, targets, views, self.loss_fn,
+            self.scene, self.scene_values() if values is None else values, batch, targets, views, self.loss_fn,
             seed=lambda view: self.step_seed(step, view), spp=self.spp, spp_grad=self.spp_grad,
         )
         error = (scored.weight * (scored.radiance.detach() - scored.target).square().mean(-1)).sum()
@@ -280,10 +285,12 @@ class InverseRenderingModule(pl.LightningModule):
         targets = batch["target"]
         step = self.global_step
         stage1_paths = 0.0
+        values = None
         if self.pixel_mode:
-            if self.refresh_sampler(step):
+            values = self.scene_values()  # one evaluation per step, shared by Stage 1, the render and the error
+            if self.refresh_sampler(step, values):
                 stage1_paths = self.sampler.diagnostics().get("stage1_paths", 0.0)
-            loss, image_error, paths = self.sampled_loss(views, targets, step)
+            loss, image_error, paths = self.sampled_loss(views, targets, step, values)
         else:
             guide = self.guide_buffers(views, step) if getattr(self.denoiser, "needs_guide", False) else None
             images = self.render_views(views, step)
@@ -310,10 +317,12 @@ class InverseRenderingModule(pl.LightningModule):
             )
             self.trainer.should_stop = True
             return None  # Lightning skips backward and the optimiser step
-        self._record_step(loss, image_error, float(paths + stage1_paths), len(views))
+        self._record_step(loss, image_error, float(paths + stage1_paths), len(views), values)
         return loss
 
-    def _record_step(self, loss: torch.Tensor, image_error: torch.Tensor, paths: float, batch_size: int) -> None:
+    def _record_step(
+        self, loss: torch.Tensor, image_error: torch.Tensor, paths: float, batch_size: int, values: Optional[dict[str, torch.Tensor]] = None
+    ) -> None:
         """Keep this step's scalars in :attr:`step_metrics` and log them.
 
         One process writes them to the loggers itself on the loggers' steps
@@ -327,7 +336,7 @@ class InverseRenderingModule(pl.LightningModule):
         metrics["paths_per_step"] = paths
         if self.sampler is not None and hasattr(self.sampler, "diagnostics"):
             metrics.update({f"sampler/{name}": float(value) for name, value in self.sampler.diagnostics().items()})
-        error = self.parameter_error(self._truth)
+        error = self.parameter_error(self._truth, values)
         if error is not None:
             metrics["param_error"] = error
         self.step_metrics = metrics
