@@ -43,7 +43,7 @@ _OUT_OF_RANGE_FRACTION = 0.01  # warn when more pixels than this lie beyond k_hi
 # The default (exact=False): terms with alpha >= 1 / FAST_CELL_FRACTION px are evaluated on
 # cells of floor(FAST_CELL_FRACTION * alpha) px. Measured on glossy_highlight at 256²
 # (scripts/bench_loi.py --only cost, largest over 3 renders): loss within 0.013 %, image
-# gradient within 0.56 % of exact, at 0.63x the exact loss's time.
+# gradient within 0.56 % of exact, at 0.59x the exact loss's time.
 FAST_CELL_FRACTION = 0.15
 
 
@@ -578,7 +578,7 @@ def loi_loss(
         exact: evaluate every term on every pixel (the paper's loss). The default evaluates
             large-``alpha`` terms on cells (``cell_fraction=0.15``: at ``alphas=(1, 5, 15, 45)``
             the last two on 2 and 6 px cells), measured within 0.013 % of the exact loss and
-            0.56 % of its gradient on 256² renders, in 0.63x the time.
+            0.56 % of its gradient on 256² renders, in 0.59x the time.
 
     Returns:
         A scalar (``(B,)`` for ``reduction="none"``). Each term is a mean over channels and
