@@ -725,12 +725,9 @@ def _texel_gradient(scene, seed, spp, weights):
 
 
 @contextlib.contextmanager
-def _texture_with_grad(params):
-    """The texture ``KEY`` as a fresh differentiable variable within the block (yielded);
-    the original is bound again after it."""
+def _texture_bound(params, value):
+    """``value`` bound as the texture ``KEY`` within the block (yielded); the original again after it."""
     tex = mi.TensorXf(params[KEY])
-    value = mi.TensorXf(tex)
-    dr.enable_grad(value)
     params[KEY] = value
     params.update()
     try:
@@ -738,6 +735,18 @@ def _texture_with_grad(params):
     finally:
         params[KEY] = tex
         params.update()
+
+
+def _texture_with_grad(params):
+    """The texture ``KEY`` as a fresh differentiable variable within the block (yielded)."""
+    value = mi.TensorXf(params[KEY])
+    dr.enable_grad(value)
+    return _texture_bound(params, value)
+
+
+def _black_texture(params):
+    """The texture ``KEY`` all 0 within the block."""
+    return _texture_bound(params, mi.TensorXf(np.zeros_like(np.array(params[KEY]))))
 
 
 def _backward(scene, i, weights, seed, spp, seed_grad, spp_grad, steps=2):
@@ -778,12 +787,8 @@ def test_black_texture_gradient_is_the_p_hat_zero_remainder(point, opts):
     remainder (module docstring) draws the first p̂ = 0 candidate, here the point light with
     n0 = M, so every configuration's gradient is NEE's on its camera rays, exactly (the image
     is linear in the texture: differences of the B.1 image); without it, the gradient is 0."""
-    params = mi.traverse(point)
-    tex = mi.TensorXf(params[KEY])
     weights = np.random.default_rng(1).random((RES, RES, 3))
-    params[KEY] = mi.TensorXf(np.zeros_like(np.array(tex)))
-    params.update()
-    try:
+    with _black_texture(mi.traverse(point)):
         fd = _texel_gradient(point, 3, 2, weights)
         assert (fd > 0).all()
         g, image = _backward(point, _integrator(**opts), weights, 3, 2, 9, 1)
@@ -793,9 +798,6 @@ def test_black_texture_gradient_is_the_p_hat_zero_remainder(point, opts):
         i.step = lambda *a, **kw: original(*a, **{**kw, "zero_remainder": False})
         g_off, _ = _backward(point, i, weights, 3, 2, 9, 1)
         assert not g_off.any()
-    finally:
-        params[KEY] = tex
-        params.update()
 
 
 def test_zero_remainder_adds_nothing_where_no_value_is_zero(multi):
@@ -872,12 +874,8 @@ def test_p_hat_zero_remainder_under_four_lights(edge_lit, opts):
     each checked."""
     scene = edge_lit
     opts = {"candidates": 3, "neighbors": 2, "temporal": False, "spatial": False, "burn_in": 0, **opts}
-    params = mi.traverse(scene)
-    tex = mi.TensorXf(params[KEY])
     weights = np.random.default_rng(5).random((RES, RES, 3))
-    params[KEY] = mi.TensorXf(np.zeros_like(np.array(tex)))
-    params.update()
-    try:
+    with _black_texture(mi.traverse(scene)):
         seed, spp = (9, 1) if opts.get("grad_paths") == "decorrelated" else (3, 2)
         want, em, zero, drawn = _remainder_gradient(scene, seed, spp, 3, opts.get("target") != "unshadowed", weights)
         n0 = zero.sum(0)
@@ -888,9 +886,6 @@ def test_p_hat_zero_remainder_under_four_lights(edge_lit, opts):
         assert ((n0 > 1) & (em[zero.argmax(0), lanes] != em[last, lanes])).any()
         g, _ = _backward(scene, _integrator(**opts), weights, 3, 2, 9, 1)
         np.testing.assert_allclose(g, want, rtol=2e-4, atol=1e-6)
-    finally:
-        params[KEY] = tex
-        params.update()
 
 
 def _gradient_of_step(scene, i, weights, seeds, spp, seed_grad, spp_grad):

@@ -20,7 +20,7 @@ Spec ``loi-loss.md`` section 6.2. Every loop is plain torch (Adam), not the Ligh
 
 Methods: ``l2`` (pixel-wise; B1 on raw HDR), ``gp`` (Gaussian pyramid, MSE per level),
 ``ms_l2`` (MSE of blurred images, sigma in {0, 1, 5, 15, 45} px: the spec's "GP" runs),
-``sigma_w1`` (LOI with alpha = 0: the sigma-space-only ablation = multi-scale L1), ``loi``
+``sigma_w1`` (LOI with alpha = 0: the sigma-space-only ablation = multi-scale L1),
 ``loi`` (the default: large-alpha terms on cells of 0.15 alpha), ``loi_exact`` (every pixel)
 and ``loi_cells`` (LOI with ``cell_fraction=0.5``: large-alpha terms on cell means, faster).
 The cost table also gives each ``cell_fraction`` setting's loss and gradient error against the
@@ -54,8 +54,8 @@ from torchir.modules import GaussianPyramidLoss, LOILoss, MultiScaleL2Loss
 
 LossFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 METHODS = ("l2", "gp", "ms_l2", "sigma_w1", "loi", "loi_exact", "loi_cells")
-CELL_FRACTIONS = (0.1, 0.25, 0.5, 1.0)
-ERROR_AZIMUTHS = (0.05, 0.4, 1.2)  # rendered images the cost table's errors are the largest over  # the cost table's speed-for-accuracy settings; "loi_cells" uses 0.5
+CELL_FRACTIONS = (0.1, 0.25, 0.5, 1.0)  # the cost table's speed-for-accuracy settings; "loi_cells" uses 0.5
+ERROR_AZIMUTHS = (0.05, 0.4, 1.2)  # rendered images the cost table's errors are the largest over
 
 # ------------------------------------------------------------------------------- losses
 
@@ -231,7 +231,8 @@ def bench_cost(args) -> dict[str, Any]:
     scene = torchir.Scene.builtin("glossy_highlight", resolution=res)
     render = torchir.functions.render
     target = render(scene, {}, spp=16, seed=5).detach()[None]
-    img0 = render(scene, {"light.azimuth": torch.tensor([0.4])}, spp=4, seed=6).detach()[None]
+    images = {theta: render(scene, {"light.azimuth": torch.tensor([theta])}, spp=4, seed=6).detach()[None] for theta in ERROR_AZIMUTHS}
+    img0 = images[0.4]  # the image the loss steps are timed on
     losses = make_losses((1, 5, 15, 45), (1, 5), "reinhard")
     losses.pop("loi_cells")
     losses["loi_renormalize"] = LOILoss(transform="reinhard", border="renormalize")
@@ -242,8 +243,8 @@ def bench_cost(args) -> dict[str, Any]:
     bins = ref.cdfs(img0, 0.0, 0.0).shape[2]  # K bin edges
     margin = math.ceil(ref.pad_frac * res)
     # D is computed on the image and r_sigma around it (beyond, both images are the pad value)
-    supports = [torch.rand(1, 3, bins, res + 2 * min(margin, math.ceil(3 * s)), res + 2 * min(margin, math.ceil(3 * s))) for s in ref.sigmas]
-    images = {theta: render(scene, {"light.azimuth": torch.tensor([theta])}, spp=4, seed=6).detach()[None] for theta in ERROR_AZIMUTHS}
+    sides = [res + 2 * min(margin, math.ceil(ref.truncate * s)) for s in ref.sigmas]
+    supports = [torch.rand(1, 3, bins, side, side) for side in sides]
 
     def render_step(i):
         theta = torch.tensor([0.4], requires_grad=True)

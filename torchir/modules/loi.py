@@ -368,6 +368,12 @@ def _operators(t: _Term, canvas: tuple[int, int], support: tuple[int, int], trun
     )
 
 
+def _term_operators(d: torch.Tensor, pw: torch.Tensor, terms: Sequence[_Term], truncate: float) -> list[tuple[torch.Tensor, torch.Tensor] | None]:
+    """Each term's operators for ``d`` on the support, ``pw`` on the padded canvas."""
+    canvas, support = tuple(pw.shape[-2:]), tuple(d.shape[-2:])
+    return [_operators(t, canvas, support, truncate, d) for t in terms]
+
+
 def _aperture(d: torch.Tensor, ops: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
     """``A_alpha * D`` on the term's cells, ``(.., H', W')``, from ``D`` on the support."""
     return d if ops is None else ops[0] @ d @ ops[1].T
@@ -396,8 +402,7 @@ def _term_value(out: torch.Tensor, t: _Term, beta: float, pw: torch.Tensor, trun
 def _scale_terms(d: torch.Tensor, terms: Sequence[_Term], beta: float, pw: torch.Tensor, truncate: float) -> list[torch.Tensor]:
     """E7 for each term: ``[(B,)]``, from ``d = Phi' - Phi^gt`` (E11: one blur per scale) on
     the support."""
-    canvas, support = tuple(pw.shape[-2:]), tuple(d.shape[-2:])
-    return [_term_value(_aperture(d, _operators(t, canvas, support, truncate, d)), t, beta, pw, truncate) for t in terms]
+    return [_term_value(_aperture(d, op), t, beta, pw, truncate) for t, op in zip(terms, _term_operators(d, pw, terms, truncate))]
 
 
 class _SigmaTerm(torch.autograd.Function):
@@ -419,8 +424,7 @@ class _SigmaTerm(torch.autograd.Function):
     @staticmethod
     def forward(ctx, j_sigma, z_target, edges, beta, terms, pw, truncate, low_memory):  # noqa: D102
         u, d = _SigmaTerm._difference(j_sigma, z_target, edges, beta)
-        canvas, support = tuple(pw.shape[-2:]), tuple(d.shape[-2:])
-        ops = [_operators(t, canvas, support, truncate, d) for t in terms]
+        ops = _term_operators(d, pw, terms, truncate)
         outs = [_aperture(d, op) for op in ops]
         total = sum(t.weight * _term_value(out, t, beta, pw, truncate) for t, out in zip(terms, outs))
         if low_memory:
