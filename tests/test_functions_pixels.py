@@ -211,18 +211,20 @@ def test_frozen_counts_from_their_second_use():
 
 
 def test_counts_used_once_are_forgotten():
-    """Past 4 * 8 keys, a new key drops the keys used once (varying multi-view counts)."""
+    """Past 4 x the recording limit keys, a new key drops the keys used once (varying multi-view counts)."""
     scene = torchir.Scene.from_dict(wall_dict())  # the passes hold it weakly
     passes = rp._pixel_passes(scene)
+    bound = 4 * passes.limit
+    assert passes.limit == 10  # 8 + 2 per sensor, one sensor
     passes._frozen("twice")
     passes._frozen("twice")
-    for k in range(30):
+    for k in range(bound - 2):
         passes._frozen(k)
-    assert len(passes.seen) == 31
-    passes._frozen(30)  # 32 keys: still below the bound
-    assert len(passes.seen) == 32
+    assert len(passes.seen) == bound - 1
+    passes._frozen(bound - 2)  # bound keys: still at the bound
+    assert len(passes.seen) == bound
     passes._frozen(0)  # a known key: nothing forgotten
-    assert len(passes.seen) == 32 and passes.seen[0] == 2
+    assert len(passes.seen) == bound and passes.seen[0] == 2
     passes._frozen("new")
     assert passes.seen == {"twice": 2, 0: 2, "new": 1}
 
@@ -244,15 +246,16 @@ def test_render_pixels_with_a_different_count_each_call(strict_warnings):
 
 
 def test_pixel_recordings_are_bounded(strict_warnings):
-    """Each pixel pass keeps at most 8 recordings (one per lane count)."""
+    """Each pixel pass keeps at most ``limit`` recordings (one per lane count; 8 + 2 per sensor)."""
     scene = torchir.Scene.from_dict(wall_dict())
-    for n in range(1, 11):
+    limit = rp._pixel_passes(scene).limit
+    for n in range(1, limit + 3):
         for seed in range(2):  # a count freezes (records) on its second use
             x = albedo_texture().requires_grad_()
             render_pixels(scene, {TEX: x}, torch.arange(n), spp=1, seed=seed).sum().backward()
             probe_pixels(scene, {}, [(1, n)], passes=1, seed=seed)
     passes = rp._pixel_passes(scene)
-    assert [f.n_cached_recordings for f in (passes._primal, passes._adjoint, passes._one_path)] == [8, 8, 8]
+    assert [f.n_cached_recordings for f in (passes._primal, passes._adjoint, passes._one_path)] == [limit] * 3
 
 
 def test_pixel_passes_call_sample_as_mitsuba_render_does(strict_warnings):

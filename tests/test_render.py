@@ -350,3 +350,21 @@ def test_render_takes_any_sampler_with_its_own_integrator(cbox, red):
         render(cbox, {KEY: red}, spp=1, sampler=sampler)
     with pytest.raises(TypeError, match="takes a sampler with its own integrator"):
         render(cbox, {KEY: red}, spp=1, sampler=object())
+
+
+def test_many_views_replay_without_re_recording():
+    """A frozen pass keeps a recording per sensor: with more sensors than the base LRU bound (8),
+    rendering every view each epoch used to re-record every call (16 views: ~1.6 s a step)."""
+    from torchir.functions._passes import _RECORDINGS_PER_PASS, passes
+
+    views = _RECORDINGS_PER_PASS + 2
+    scene = torchir.Scene.builtin("multiview", resolution=8, views=views, texture=4)
+    key = "object.bsdf.reflectance.data"
+    x = scene.get(key).requires_grad_()
+    counts = []
+    for epoch in range(4):
+        for view in range(views):
+            render(scene, {key: x}, sensor=view, spp=1, seed=epoch * views + view).mean().backward()
+        counts.append(passes(scene).recordings)
+    assert passes(scene).frozen and counts[1] >= 2 * views  # a primal and an adjoint recording per view
+    assert counts[3] == counts[1]  # warm (as a single view, from its second call): no more recordings

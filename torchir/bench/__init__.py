@@ -24,6 +24,7 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "restir_views": "torchir.bench.restir_views",
     "combined": "torchir.bench.combined",
     "stepcost": "torchir.bench.stepcost",
+    "scaleup": "torchir.bench.scaleup",
     "soak": "torchir.bench.soak",
 }
 ALL = tuple(SUITES)

@@ -60,6 +60,12 @@ CLAIMS: list[Claim] = [
           lambda r: _row(r["rows"], resolution=256, sampler="adaptive", budget=0.05)["ratio_to_full_amortised"], lambda v: v <= 0.2),
     Claim("stepcost", "5% uniform pixel step / full-image step, 512², 1 spp", "-", "-",
           lambda r: _row(r["rows"], resolution=512, sampler="uniform", budget=0.05)["ratio_to_full"], lambda v: v <= 0.2),
+    *(claim for workload in ("cbox_512", "multiview_16") for claim in (
+        Claim("scaleup", f"{workload}: time for adaptive 5% to reach the full render's final error (decayed lr), / its time",
+              "faster (plots only)", "<= 0.5x", lambda r, w=workload: _scaleup_reach(r, w, "full render, decay"), lambda v: v <= 0.5),
+        Claim("scaleup", f"{workload}: time for adaptive 5% to reach uniform 5%'s final error, / its time",
+              "faster (plots only)", "<= 0.5x", lambda r, w=workload: _scaleup_reach(r, w, "uniform 5%, decay"), lambda v: v <= 0.5),
+    )),
     *(claim for scene in ("ajar_painting", "many_lights") for claim in (
         Claim("restir", f"{scene}: gradient error, best baseline at equal time / ReSTIR (128²)", "up to 100x (GPU)", ">= 5x",
               lambda r, s=scene: _restir_row(r, s)["gain"], lambda v: v >= 5),
@@ -90,6 +96,13 @@ def _denoiser_ratio(r: dict, task: str, method: str) -> float:
 def _views_efficiency(r: dict, burn_in: int) -> float:
     base, carry = (r["results"][f"{m} (burn-in {burn_in})"] for m in ("per-sensor", "carry-over"))
     return (base["rms_error"] ** 2 * base["seconds"]) / (carry["rms_error"] ** 2 * carry["seconds"])
+
+
+def _scaleup_reach(r: dict, workload: str, reference: str) -> float:
+    """The scaleup suite's median reach fraction of adaptive 5% against ``reference`` (NaN: never)."""
+    row = next(x for x in r["summary"][workload] if x["config"] == "adaptive 5%, decay")
+    value, hit, _ = row[f"reach {reference}"]
+    return value if hit else float("inf")
 
 
 def _restir_row(r: dict, scene: str, method: str = "ReSTIR (shadowed)") -> dict:

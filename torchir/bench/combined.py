@@ -193,13 +193,14 @@ def _error_text(error: BaseException, limit: int = 240) -> str:
 
 def run_configuration(
     config: Configuration, seed: int, resolution: int, steps: int, quick: bool, workdir: Path, target_spp: int | None = None,
-    max_seconds: float | None = None,
+    max_seconds: float | None = None, setup: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Train ``config`` for ``steps`` steps (seed ``seed``) and return its measurements; a
     configuration that raises returns ``status`` ``"rejected"`` (construction failed) or
     ``"failed"`` (training failed) with the error. ``target_spp`` overrides the scene's;
     ``max_seconds`` stops training after that much wall time (Lightning's ``max_time``, from the
-    start of training: the targets are rendered before)."""
+    start of training: the targets are rendered before). ``setup`` replaces
+    :func:`scene_setup`'s ``{"model": ..., "data": ...}`` (other suites' workloads)."""
     import datetime
 
     import lightning.pytorch as pl
@@ -207,7 +208,7 @@ def run_configuration(
 
     from torchir.training import InverseRenderingModule, ViewDataModule
 
-    setup = scene_setup(config.scene, resolution, quick)
+    setup = scene_setup(config.scene, resolution, quick) if setup is None else {k: dict(v) for k, v in setup.items()}
     if target_spp is not None:
         setup["data"]["target_spp"] = target_spp
     model = {"lr": LR, **setup["model"], **config.model, "seed": seed}

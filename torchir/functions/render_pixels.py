@@ -21,7 +21,7 @@ import torch
 from ..scene import Scene
 from . import _args
 from ._bound_op import BoundRenderOp
-from ._passes import _clear_grads, passes
+from ._passes import _clear_grads, passes, recording_limit
 
 __all__ = ["render_pixels"]
 
@@ -125,12 +125,13 @@ class _PixelPasses:
         self.scene = weakref.proxy(scene)
         self.full_passes = passes(scene)  # whose rules say which bindings replay correctly
         self.seen: dict[tuple, int] = {}
-        self._primal = dr.freeze(_primal_pass, limit=_RECORDINGS)
-        self._adjoint = dr.freeze(_adjoint_pass, limit=_RECORDINGS)
-        self._one_path = dr.freeze(_one_path_pass, limit=_RECORDINGS)
+        self.limit = limit = recording_limit(scene.sensor_count)
+        self._primal = dr.freeze(_primal_pass, limit=limit)
+        self._adjoint = dr.freeze(_adjoint_pass, limit=limit)
+        self._one_path = dr.freeze(_one_path_pass, limit=limit)
 
     def _frozen(self, key: tuple) -> bool:
-        if key not in self.seen and len(self.seen) >= 4 * _RECORDINGS:  # forget counts used once
+        if key not in self.seen and len(self.seen) >= 4 * self.limit:  # forget counts used once
             self.seen = {k: v for k, v in self.seen.items() if v > 1}
         uses = self.seen[key] = self.seen.get(key, 0) + 1
         return uses > 1 and self.full_passes._replayable()
@@ -167,7 +168,6 @@ class _PixelPasses:
         dr.eval()
 
 
-_RECORDINGS = 8
 _PIXEL_PASSES: weakref.WeakKeyDictionary[Scene, _PixelPasses] = weakref.WeakKeyDictionary()
 
 

@@ -71,7 +71,9 @@ class InverseRenderingModule(pl.LightningModule):
         lr_half_life: steps over which every learning rate halves (decayed each step), or
             ``None`` for constant rates. With a constant rate the error stops falling at a
             level set by the gradient noise (measured: a 5% pixel budget at 512^2 levels off at
-            1.4-2.2x the full image's error); a decay lowers that floor over the run.
+            1.4-2.2x the full image's error); a decay lowers that floor over the run (a
+            half-life of 150 steps took it to 0.011-0.016 against the constant-rate full
+            image's 0.029-0.031: ``torchir bench scaleup``).
         optimizer: ``adam`` (default) or ``sgd``.
         preview_spp: samples per pixel of the images written for people (initial/current/final).
     """
