@@ -16,6 +16,7 @@ import pytest
 import torch
 from torchir.functions import probe, render, render_pixels
 from torchir.functions.probe import probe_pixels
+from torchir.testing import gradcheck
 from torchir.scenes import _common
 
 from .test_functions_core import (  # noqa: F401 - cbox8, strict_warnings, wall: fixtures
@@ -454,3 +455,65 @@ def test_probe_input_errors(wall):
         probe_pixels(wall, {SUN: torch.ones(4)}, [(1, 1)])
     with raises(TypeError, "scene must be a torchir.Scene (Scene.builtin / from_file / from_dict), got int"):
         probe_pixels(3, {}, [(1, 1)])
+
+
+# ------------------------------------------------------------ several sensors in one wavefront
+MV_KEY = "object.bsdf.reflectance.data"
+
+
+@pytest.fixture(scope="module")
+def views3() -> torchir.Scene:
+    return torchir.Scene.builtin("multiview", resolution=8, views=3, texture=4)
+
+
+def test_listed_sensors_trace_each_lane_through_its_own_sensor(views3):
+    """A lane's ray and path depend only on its sensor, pixel and lane number: lanes all in view 2
+    render bitwise as with ``sensor=2``, whichever other sensors are listed and in what order."""
+    hw = 64
+    pixels = torch.tensor([3, 10, 40, 63])
+    alone = render_pixels(views3, {}, pixels, spp=2, seed=5, sensor=2)
+    assert torch.equal(render_pixels(views3, {}, 2 * hw + pixels, spp=2, seed=5, sensor=[0, 1, 2]), alone)
+    assert torch.equal(render_pixels(views3, {}, hw + pixels, spp=2, seed=5, sensor=[0, 2]), alone)
+    mixed = render_pixels(views3, {}, torch.tensor([3, hw + 10, 2 * hw + 40]), spp=2, seed=5, sensor=[0, 1, 2])
+    swapped = render_pixels(views3, {}, torch.tensor([hw + 3, 10, 2 * hw + 40]), spp=2, seed=5, sensor=[1, 0, 2])
+    assert torch.equal(mixed, swapped)
+    other_views = render_pixels(views3, {}, torch.tensor([3, hw + 10, 2 * hw + 40]), spp=2, seed=5, sensor=[1, 2, 0])
+    assert not torch.equal(mixed, other_views)  # the sensor really is per lane
+
+
+def test_listed_sensors_gradient_matches_finite_differences(views3):
+    index = torch.tensor([5, 64 + 20, 128 + 33, 128 + 34, 64 + 21, 9])
+    w = torch.rand(6, 3, generator=torch.Generator().manual_seed(2)) + 0.5
+
+    def loss(params, seed):
+        return (render_pixels(views3, params, index, spp=16, seed=seed, sensor=[0, 1, 2]) * w).sum()
+
+    assert gradcheck(loss, {MV_KEY: views3.get(MV_KEY).requires_grad_()}, seeds=range(6), directions=2)
+
+
+def test_listed_sensors_replay_frozen_whatever_the_per_view_counts(views3):
+    """One wavefront keys its recording on the listed sensors and the total count only: batches
+    whose per-view counts change every step replay one recording (per-view passes re-traced)."""
+    x = views3.get(MV_KEY).requires_grad_()
+    g = torch.Generator().manual_seed(0)
+    recordings = []
+    for step in range(5):
+        index = torch.randint(0, 3 * 64, (40,), generator=g)  # new per-view counts every step
+        render_pixels(views3, {MV_KEY: x}, index, spp=1, seed=step, sensor=[0, 1, 2]).sum().backward()
+        passes = rp._pixel_passes(views3)
+        recordings.append(passes._primal.n_recordings + passes._adjoint.n_recordings)
+    assert recordings[1] >= 2 and recordings[-1] == recordings[2]
+
+
+@pytest.mark.parametrize(
+    ("sensor", "error", "match"),
+    [([], ValueError, "non-empty list"), ([0, True], TypeError, "list of ints"), ([0, 7], Exception, "7")],
+)
+def test_bad_sensor_lists_raise_clear_errors(views3, sensor, error, match):
+    with pytest.raises(error, match=match):
+        render_pixels(views3, {}, torch.tensor([0]), sensor=sensor)
+
+
+def test_index_beyond_the_listed_sensors_is_explained(views3):
+    with pytest.raises(IndexError, match=r"the 2 sensors have 128 pixels \(k \* H \* W \+ y \* W \+ x\)"):
+        render_pixels(views3, {}, torch.tensor([0, 128]), sensor=[0, 1])

@@ -410,7 +410,8 @@ def test_stage1_argument_errors():
 def _fake_render(calls, images):
     def render_pixels(scene, params, index, spp=1, seed=0, sensor=0, spp_grad=None):
         calls.append(dict(index=index.clone(), spp=spp, seed=seed, sensor=sensor, spp_grad=spp_grad))
-        return params["x"] * images[sensor].flatten(1).t()[index]
+        listed = sensor if isinstance(sensor, list) else [sensor]  # a list: index k * H * W + pixel of listed[k]
+        return params["x"] * images[listed].flatten(2).transpose(1, 2).flatten(0, 1)[index]
 
     return render_pixels
 
@@ -419,7 +420,8 @@ def _fake_render(calls, images):
 def test_sampled_loss_of_every_pixel_is_the_full_loss(monkeypatch, reduction):
     """A batch holding every pixel once with weight 1/m scores exactly the full-image loss
     (loss(image) = mean_j l_j), with its gradient; rows come grouped by view in the order of
-    ``views``, raster order within a view, each view rendered once with its own seed."""
+    ``views``, raster order within a view, every view in one render_pixels call (one
+    wavefront) with the first view's seed."""
     import torchir.functions as functions
 
     h, w, m = 4, 6, 2 * 4 * 6
@@ -439,8 +441,8 @@ def test_sampled_loss_of_every_pixel_is_the_full_loss(monkeypatch, reduction):
     raster = lambda t: torch.cat([t[1].flatten(1).t(), t[0].flatten(1).t()])
     torch.testing.assert_close(scored.radiance, raster(x * images))
     torch.testing.assert_close(scored.target, raster(targets))
-    assert [(c["sensor"], c["seed"], c["spp"], c["spp_grad"]) for c in calls] == [(1, 51, 3, 5), (0, 50, 3, 5)]
-    assert all(torch.equal(c["index"], torch.arange(h * w)) for c in calls)
+    assert [(c["sensor"], c["seed"], c["spp"], c["spp_grad"]) for c in calls] == [([1, 0], 51, 3, 5)]
+    assert torch.equal(calls[0]["index"], torch.arange(2 * h * w))  # view 1's pixels, then view 0's
     # arbitrary weights follow their pixels: loss = sum_n w_n l_n
     calls.clear()
     scored = sampled_loss(_FakeScene((h, w), 2), {"x": x}, PixelBatch(order, weight), targets, [0, 1], loss, seed=lambda v: v)
@@ -449,7 +451,7 @@ def test_sampled_loss_of_every_pixel_is_the_full_loss(monkeypatch, reduction):
     by_pixel = torch.empty(m)
     by_pixel[order] = weight
     torch.testing.assert_close(scored.weight, by_pixel)
-    assert [(c["sensor"], c["seed"], c["spp"], c["spp_grad"]) for c in calls] == [(0, 0, 1, None), (1, 1, 1, None)]  # defaults
+    assert [(c["sensor"], c["seed"], c["spp"], c["spp_grad"]) for c in calls] == [([0, 1], 0, 1, None)]  # defaults
     torch.testing.assert_close(scored.loss, (by_pixel * terms).sum(), rtol=1e-5, atol=0)
 
 
@@ -469,12 +471,14 @@ def test_sampled_loss_skips_views_without_draws(monkeypatch):
     # raster order: the two draws of pixel 5 (weights 1 and 3) may come in either order
     assert scored.weight[[0, 3]].tolist() == [2.0, 4.0] and sorted(scored.weight[1:3].tolist()) == [1.0, 3.0]
     torch.testing.assert_close(scored.target, targets[2].flatten(1).t()[[2, 5, 5, 23]])
-    # a view with a single draw is rendered like any other
+    # a view with a single draw is rendered like any other; views without draws are not listed
     calls.clear()
-    batch = PixelBatch(torch.tensor([7, 2 * h * w + 3]), torch.tensor([0.5, 0.25]))
+    batch = PixelBatch(torch.tensor([2 * h * w + 3, 7]), torch.tensor([0.25, 0.5]))
     scored = sampled_loss(_FakeScene((h, w), 3), {"x": x}, batch, targets, [0, 1, 2], L2Loss(), seed=lambda v: v)
-    assert [(c["sensor"], c["index"].tolist()) for c in calls] == [(0, [7]), (2, [3])]
-    assert scored.weight.tolist() == [0.5, 0.25] and scored.radiance.shape == (2, 3)
+    assert [(c["sensor"], c["index"].tolist()) for c in calls] == [([0, 2], [7, h * w + 3])]  # k * H * W + pixel of listed[k]
+    assert scored.weight.tolist() == [0.5, 0.25]
+    torch.testing.assert_close(scored.radiance, torch.stack([images[0].flatten(1)[:, 7], images[2].flatten(1)[:, 3]]))
+    torch.testing.assert_close(scored.target, torch.stack([targets[0].flatten(1)[:, 7], targets[2].flatten(1)[:, 3]]))
 
 
 def test_sampled_loss_of_one_view_matches_the_per_view_path(monkeypatch):

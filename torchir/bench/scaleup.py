@@ -28,10 +28,9 @@ at 512^2 (full: 30 / 75 / none over 150 steps, 75 best; pixels: 150 / 300): a pi
 second); the decay lowers that floor for every method.
 
 Measured (seed 0, 2 cores; README): adaptive reaches the decayed full render's final error in
-0.47x its time at 512^2; on ``textured_wall_256`` the full render wins (every pixel matters);
-on ``multiview_16`` a pixel step costs ~3-4x a full step, because each view's draws are rendered
-by their own, unfrozen pass (per-view counts vary from step to step): one wavefront across views
-is the fix this workload asks for.
+0.47x its time at 512^2; on ``textured_wall_256`` and ``multiview_16`` the full render wins
+(the parameters' footprint covers most pixels). A 16-view pixel step costs 0.19x a full step
+(one wavefront over every view's draws).
 
 Reported per workload and configuration (medians over seeds): seconds per step, steps, final and
 best parameter RMSE, and the wall time at which the run first reaches each reference run's final

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import weakref
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,7 +28,8 @@ __all__ = ["render_pixels"]
 
 @dataclass(frozen=True)
 class _PixelSettings(_args.RenderSettings):
-    index: mi.UInt32  # (N,) flat pixel indices; not differentiable
+    index: mi.UInt32  # (N,) flat pixel indices over ``sensors``; not differentiable
+    sensors: tuple[int, ...] = ()  # the listed sensors (``(sensor,)`` for one)
 
 
 def _film_rays(sensor: mi.Sensor, x: mi.Float, y: mi.Float, width, height, sampler: mi.Sampler):
@@ -45,12 +46,32 @@ def _film_rays(sensor: mi.Sensor, x: mi.Float, y: mi.Float, width, height, sampl
         return sensor.sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
 
 
-def _pixel_rays(sensor: mi.Sensor, pixel: mi.UInt32, sampler: mi.Sampler):
-    """Camera rays through the given film pixels (flat ``y * W + x`` within the crop window)."""
-    width, height = sensor.film().crop_size()
+def _pixel_rays(sensors: list[mi.Sensor], index: mi.UInt32, sampler: mi.Sampler):
+    """Camera rays through the given film pixels: ``index`` is ``k * W * H + y * W + x`` for
+    pixel ``(x, y)`` of ``sensors[k]`` (one wavefront over every view; sensors of one size).
+    Every lane draws the same random numbers whatever its sensor, so a lane's ray and path do
+    not depend on which other views are in the wavefront."""
+    width, height = sensors[0].film().crop_size()
+    if len(sensors) == 1:
+        y = index // width
+        return _film_rays(sensors[0], mi.Float(index - y * width), mi.Float(y), float(width), float(height), sampler)
+    per_view = width * height
+    view = index // per_view
+    pixel = index - view * per_view
     y = pixel // width
-    x = pixel - y * width
-    return _film_rays(sensor, mi.Float(x), mi.Float(y), float(width), float(height), sampler)
+    pos = mi.Vector2f(mi.Float(pixel - y * width), mi.Float(y)) + sampler.next_2d()
+    pos_01 = mi.Vector2f(pos.x / width, pos.y / height)
+    aperture = sampler.next_2d() if any(s.needs_aperture_sample() for s in sensors) else mi.Vector2f(0.0)
+    time = sensors[0].shutter_open()
+    if sensors[0].shutter_open_time() > 0:
+        time += sampler.next_1d() * sensors[0].shutter_open_time()
+    with dr.resume_grad():
+        ray, weight = sensors[0].sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
+        for k, sensor in enumerate(sensors[1:], start=1):
+            ray_k, weight_k = sensor.sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
+            mine = view == k
+            ray, weight = dr.select(mine, ray_k, ray), dr.select(mine, weight_k, weight)
+    return ray, weight
 
 
 def _per_lane(array_type: type, per_pixel, spp: int):
@@ -66,11 +87,17 @@ def _seeded_sampler(seed: int, lanes: int) -> mi.Sampler:
     return sampler
 
 
-def _primal_pass(mi_scene: mi.Scene, sensor: int, index: mi.UInt32, seed: Any, spp: int, count: int) -> mi.Color3f:
-    """Mean radiance of ``spp`` paths through each of the ``count`` listed pixels."""
+def _sensors(mi_scene: mi.Scene, sensors: tuple[int, ...]) -> list[mi.Sensor]:
+    every = mi_scene.sensors()
+    return [every[k] for k in sensors]
+
+
+def _primal_pass(mi_scene: mi.Scene, sensors: tuple[int, ...], index: mi.UInt32, seed: Any, spp: int, count: int) -> mi.Color3f:
+    """Mean radiance of ``spp`` paths through each of the ``count`` listed pixels (of ``sensors``:
+    see :func:`_pixel_rays`)."""
     lanes = _per_lane(mi.UInt32, index, spp)
     sampler = _seeded_sampler(seed, count * spp)
-    ray, weight = _pixel_rays(mi_scene.sensors()[sensor], lanes, sampler)
+    ray, weight = _pixel_rays(_sensors(mi_scene, sensors), lanes, sampler)
     L, _, _, _ = mi_scene.integrator().sample(
         mode=dr.ADMode.Primal, scene=mi_scene, sampler=sampler, ray=ray,
         depth=mi.UInt32(0), δL=None, δaovs=None, state_in=None, active=mi.Bool(True),
@@ -78,12 +105,12 @@ def _primal_pass(mi_scene: mi.Scene, sensor: int, index: mi.UInt32, seed: Any, s
     return dr.block_sum(mi.Color3f(L * weight), spp) / spp
 
 
-def _adjoint_pass(mi_scene: mi.Scene, sensor: int, index: mi.UInt32, δ_pixel: mi.Color3f, seed: Any, spp: int, count: int, params: dict) -> None:
+def _adjoint_pass(mi_scene: mi.Scene, sensors: tuple[int, ...], index: mi.UInt32, δ_pixel: mi.Color3f, seed: Any, spp: int, count: int, params: dict) -> None:
     """Primal + path-replay Backward pass of ``spp`` fresh paths per listed pixel, adjoint ``δ_pixel``."""
     lanes = _per_lane(mi.UInt32, index, spp)
     sampler = _seeded_sampler(seed, count * spp)
     with dr.suspend_grad():
-        ray, weight = _pixel_rays(mi_scene.sensors()[sensor], lanes, sampler)
+        ray, weight = _pixel_rays(_sensors(mi_scene, sensors), lanes, sampler)
         δL = _per_lane(mi.Color3f, δ_pixel, spp) * weight / spp
         integrator = mi_scene.integrator()
         L, _, _, state = integrator.sample(
@@ -136,14 +163,14 @@ class _PixelPasses:
         uses = self.seen[key] = self.seen.get(key, 0) + 1
         return uses > 1 and self.full_passes._replayable()
 
-    def primal(self, sensor: int, index: mi.UInt32, seed: int, spp: int) -> mi.Color3f:
+    def primal(self, sensors: tuple[int, ...], index: mi.UInt32, seed: int, spp: int) -> mi.Color3f:
         count = dr.width(index)
-        if self._frozen(("primal", sensor, count, spp)):
+        if self._frozen(("primal", sensors, count, spp)):
             try:
-                return self._primal(self.scene.mi_scene, sensor, index, dr.opaque(mi.UInt32, seed), spp, count)
+                return self._primal(self.scene.mi_scene, sensors, index, dr.opaque(mi.UInt32, seed), spp, count)
             except Exception as error:  # noqa: BLE001 - as RenderPasses: fall back, loudly
                 self.full_passes._unfreeze(error)
-        return _primal_pass(self.scene.mi_scene, sensor, index, seed, spp, count)
+        return _primal_pass(self.scene.mi_scene, sensors, index, seed, spp, count)
 
     def one_path(self, sensor: int, lanes: tuple[mi.Float, mi.Float, mi.Float, mi.Float], seed: int) -> mi.Color3f:
         count = dr.width(lanes[0])
@@ -154,17 +181,17 @@ class _PixelPasses:
                 self.full_passes._unfreeze(error)
         return _one_path_pass(self.scene.mi_scene, sensor, *lanes, seed, count)
 
-    def adjoint(self, sensor: int, index: mi.UInt32, δ_pixel: mi.Color3f, seed: int, spp: int, params: dict) -> None:
+    def adjoint(self, sensors: tuple[int, ...], index: mi.UInt32, δ_pixel: mi.Color3f, seed: int, spp: int, params: dict) -> None:
         count = dr.width(index)
-        if self._frozen(("adjoint", sensor, count, spp)):
+        if self._frozen(("adjoint", sensors, count, spp)):
             try:
-                self._adjoint(self.scene.mi_scene, sensor, index, δ_pixel, dr.opaque(mi.UInt32, seed), spp, count, params)
+                self._adjoint(self.scene.mi_scene, sensors, index, δ_pixel, dr.opaque(mi.UInt32, seed), spp, count, params)
             except Exception as error:  # noqa: BLE001
                 self.full_passes._unfreeze(error)
                 _clear_grads(params)  # a failed recording may have accumulated part of the gradient
-                _adjoint_pass(self.scene.mi_scene, sensor, index, δ_pixel, seed, spp, count, params)
+                _adjoint_pass(self.scene.mi_scene, sensors, index, δ_pixel, seed, spp, count, params)
         else:
-            _adjoint_pass(self.scene.mi_scene, sensor, index, δ_pixel, seed, spp, count, params)
+            _adjoint_pass(self.scene.mi_scene, sensors, index, δ_pixel, seed, spp, count, params)
         dr.eval()
 
 
@@ -183,20 +210,21 @@ class _PixelRenderOp(BoundRenderOp):
 
     def primal(self) -> mi.TensorXf:
         s: _PixelSettings = self.settings
-        mean = _pixel_passes(self.scene).primal(s.sensor, s.index, s.seed, s.spp)
+        mean = _pixel_passes(self.scene).primal(s.sensors, s.index, s.seed, s.spp)
         return mi.TensorXf(dr.ravel(mean), (dr.width(s.index), 3))
 
     def adjoint(self, grad_out: mi.TensorXf) -> None:
         s: _PixelSettings = self.settings
         δ_pixel = dr.unravel(mi.Color3f, grad_out.array)
-        _pixel_passes(self.scene).adjoint(s.sensor, s.index, δ_pixel, s.seed_grad, s.spp_grad, self.fresh)
+        _pixel_passes(self.scene).adjoint(s.sensors, s.index, δ_pixel, s.seed_grad, s.spp_grad, self.fresh)
 
 
 @dr.wrap(source="torch", target="drjit")
-def _render_pixels_drjit(scene: Scene, values: dict, index, grad_names: frozenset, settings: _args.RenderSettings):
+def _render_pixels_drjit(scene: Scene, values: dict, index, grad_names: frozenset, settings: _args.RenderSettings,
+                         sensors: tuple[int, ...]):
     native = {name: scene.to_drjit(name, value) for name, value in values.items()}
     fields = {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings)}  # flat: asdict's deep copy costs 5x
-    pixel_settings = _PixelSettings(**fields, index=mi.UInt32(index.array))
+    pixel_settings = _PixelSettings(**fields, index=mi.UInt32(index.array), sensors=sensors)
     return dr.custom(_PixelRenderOp, scene, native, grad_names, pixel_settings)
 
 
@@ -222,7 +250,7 @@ def _check_box_filter(scene: Scene, sensor: int) -> None:
         )
 
 
-def _check_index(index: object, pixel_count: int) -> torch.Tensor:
+def _check_index(index: object, pixel_count: int, sensors: int = 1) -> torch.Tensor:
     if not isinstance(index, torch.Tensor):
         raise TypeError(f"index must be a torch.LongTensor of pixel indices, got {type(index).__name__}")
     if index.dtype not in (torch.int64, torch.int32):
@@ -231,7 +259,9 @@ def _check_index(index: object, pixel_count: int) -> torch.Tensor:
         raise ValueError(f"index must be a non-empty 1-D tensor, got shape {tuple(index.shape)}")
     lo, hi = (int(v) for v in torch.aminmax(index))
     if lo < 0 or hi >= pixel_count:
-        raise IndexError(f"pixel index out of range: got [{lo}, {hi}], the sensor has {pixel_count} pixels (y * W + x)")
+        layout = (f"the sensor has {pixel_count} pixels (y * W + x)" if sensors == 1 else
+                  f"the {sensors} sensors have {pixel_count} pixels (k * H * W + y * W + x)")
+        raise IndexError(f"pixel index out of range: got [{lo}, {hi}], {layout}")
     return index.to(torch.int32)
 
 
@@ -241,7 +271,7 @@ def render_pixels(
     index: torch.Tensor,
     spp: int = 1,
     seed: int = 0,
-    sensor: int = 0,
+    sensor: int | Sequence[int] = 0,
     spp_grad: int | None = None,
     seed_grad: int | None = None,
 ) -> torch.Tensor:
@@ -254,9 +284,12 @@ def render_pixels(
     Args:
         scene: a :class:`torchir.Scene` whose integrator is ``prb``, ``prb_basic`` or ``prbvolpath``.
         params: as for :func:`render`.
-        index: ``(N,)`` integer tensor of flat pixel indices ``y * W + x``.
+        index: ``(N,)`` integer tensor of flat pixel indices ``y * W + x``; with a list of
+            sensors, ``k * H * W + y * W + x`` for pixel ``(x, y)`` of ``sensor[k]``.
         spp: paths per listed pixel, >= 1.
-        seed, seed_grad, spp_grad, sensor: as for :func:`render`.
+        sensor: a sensor index, or a list of sensors of one resolution whose pixels are traced
+            in one wavefront (a multi-view pixel batch in one pass instead of one per view).
+        seed, seed_grad, spp_grad: as for :func:`render`.
 
     Returns:
         ``(N, 3)`` float32 radiance of the listed pixels.
@@ -267,10 +300,30 @@ def render_pixels(
         torch.Size([4, 3])
     """
     scene = _args.check_scene(scene)
-    settings = _args.render_settings(scene, sensor, spp, seed, spp_grad, seed_grad)
-    h, w = scene.sensor_resolution(sensor)
-    index = _check_index(index, h * w)
+    sensors = _check_sensors(scene, sensor)
+    settings = _args.render_settings(scene, sensors[0], spp, seed, spp_grad, seed_grad)
+    h, w = scene.sensor_resolution(sensors[0])
+    index = _check_index(index, len(sensors) * h * w, len(sensors))
     _check_integrator(scene)
-    _check_box_filter(scene, sensor)
+    for k in sensors:
+        _check_box_filter(scene, k)
     values, grad_names = _args.split_params(scene, params)
-    return _render_pixels_drjit(scene, values, index, grad_names, settings)
+    return _render_pixels_drjit(scene, values, index, grad_names, settings, sensors)
+
+
+def _check_sensors(scene: Scene, sensor: object) -> tuple[int, ...]:
+    """``sensor`` as a non-empty tuple of valid sensor indices of one resolution."""
+    if isinstance(sensor, (list, tuple)):
+        if not sensor:
+            raise ValueError("sensor must be a sensor index or a non-empty list of them, got []")
+        sensors = tuple(sensor)
+    else:
+        sensors = (sensor,)
+    for k in sensors:
+        if isinstance(k, bool) or not isinstance(k, int):
+            raise TypeError(f"sensor must be an int or a list of ints, got {sensor!r}")
+        scene.sensor(k)  # range check, with the scene's own message
+    sizes = {scene.sensor_resolution(k) for k in sensors}
+    if len(sizes) > 1:
+        raise ValueError(f"sensors {list(sensors)} differ in resolution ({sorted(sizes)}): one wavefront needs one film size")
+    return sensors

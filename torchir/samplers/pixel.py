@@ -76,8 +76,9 @@ def sampled_loss(
 ) -> SampledLoss:
     """The importance-weighted loss of one pixel batch (paper 000, E16).
 
-    The drawn pixels of each view are rendered with :func:`torchir.functions.render_pixels`,
-    whose gradient pass replays independent paths (E3), and scored with the per-pixel loss:
+    The drawn pixels are rendered with :func:`torchir.functions.render_pixels` (the pixels of
+    every view in one wavefront), whose gradient pass replays independent paths (E3), and
+    scored with the per-pixel loss:
     ``loss = sum_n w_n l_n``, with ``l_n`` from ``loss.pixel_terms``. Backpropagating it gives
     an unbiased estimate of the gradient of ``loss`` over the full images of ``views``.
 
@@ -88,18 +89,24 @@ def sampled_loss(
         targets: ``(V', C, H, W)`` or a list of ``(C, H, W)``, one per entry of ``views``.
         views: the sensors of the batch, in the order of ``targets``.
         loss: a per-pixel loss module with ``pixel_terms``.
-        seed: ``view -> seed`` of that view's primal paths.
+        seed: ``view -> seed`` of the primal paths (with draws in several views: of the first).
         spp, spp_grad: paths per drawn pixel in the primal and gradient passes.
     """
     from ..functions import render_pixels  # Dr.Jit side, loaded on first use
 
     h, w = scene.resolution
-    rendered, wanted, weights = [], [], []
-    for position, view, chosen, pixels in _draws_by_view(batch.index, views, h * w):
-        rendered.append(render_pixels(scene, params, pixels, spp=spp, seed=seed(view), sensor=view, spp_grad=spp_grad))
-        wanted.append(targets[position].flatten(1).t()[pixels])
-        weights.append(batch.weight[chosen])
-    radiance, target, weight = torch.cat(rendered), torch.cat(wanted), torch.cat(weights)
+    draws = _draws_by_view(batch.index, views, h * w)
+    if len(draws) == 1:
+        ((position, view, chosen, pixels),) = draws
+        radiance = render_pixels(scene, params, pixels, spp=spp, seed=seed(view), sensor=view, spp_grad=spp_grad)
+        target, weight = targets[position].flatten(1).t()[pixels], batch.weight[chosen]
+    else:  # several views: one wavefront over their pixels (one frozen pass, whatever the per-view counts)
+        listed = [view for _, view, _, _ in draws]
+        chosen = torch.cat([c for _, _, c, _ in draws])
+        local = torch.cat([k * h * w + p for k, (_, _, _, p) in enumerate(draws)])
+        radiance = render_pixels(scene, params, local, spp=spp, seed=seed(listed[0]), sensor=listed, spp_grad=spp_grad)
+        stacked = torch.stack([targets[position] for position, _, _, _ in draws]).flatten(2).transpose(1, 2).flatten(0, 1)
+        target, weight = stacked[local], batch.weight[chosen]
     terms = loss.pixel_terms(radiance, target, len(views) * h * w)
     return SampledLoss((weight * terms).sum(), radiance, target, weight)
 
