@@ -186,6 +186,17 @@ def _quiet() -> None:
     warnings.filterwarnings("ignore", message=".*does not have many workers.*")
 
 
+def start_trainer_suite(out: str | Path) -> Path:
+    """What every suite of trainer runs does first: the variant, Lightning quiet, ``out`` made."""
+    import torchir
+
+    torchir.backend.set_variant("auto")
+    _quiet()
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
 def _error_text(error: BaseException, limit: int = 240) -> str:
     text = f"{type(error).__name__}: {error}".replace("\n", " ").replace("|", "/")
     return text if len(text) <= limit else text[: limit - 3] + "..."

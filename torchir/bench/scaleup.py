@@ -225,12 +225,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     a = parse_args(argv)
-    import torchir
-
-    torchir.backend.set_variant("auto")
-    combined._quiet()
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = combined.start_trainer_suite(a.out)
     started = time.perf_counter()
     runs: list[dict[str, Any]] = []
     chosen = [w for w in workloads(a.quick) if a.only is None or w.name in a.only]
