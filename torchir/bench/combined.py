@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CONFIGURATIONS", "Configuration", "main", "plot_results", "summarize", "tables"]
+__all__ = ["CONFIGURATIONS", "Configuration", "main", "plot_results", "reach_fractions", "summarize", "tables"]
 
 OXALIS_PARAMETERS = {"canvas.bsdf.reflectance.data": {"init": 0.5, "bounds": [0.001, 1.0]}}
 CBOX_PARAMETERS = {
@@ -329,7 +329,7 @@ def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
         base = next((r for r in rows if r["config"] == baselines.get(scene)), rows[0])
         for r in rows:
             r["baseline"] = base["config"]
-            reached = _time_to_baseline_error(runs, scene, r["config"], base["config"])
+            reached = reach_fractions(runs, scene, r["config"], base["config"])
             r["time_to_baseline_error"] = _median(reached) if reached and all(v == v for v in reached) else float("nan")
             r["reached_baseline_error"] = sum(v == v for v in reached)
             for k in ("seconds_per_step", "paths_per_step", "peak_rss_mb", "final_param_error", "final_image_error", "train_seconds"):
@@ -337,9 +337,10 @@ def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return {"scenes": scenes, "rejected": rejected}
 
 
-def _time_to_baseline_error(runs: list[dict[str, Any]], scene: str, config: str, baseline: str) -> list[float]:
-    """Per seed: the wall time at which ``config`` first reaches the baseline run's final
-    parameter error (same seed), as a fraction of the baseline's training time; NaN if never."""
+def reach_fractions(runs: list[dict[str, Any]], scene: str, config: str, baseline: str) -> list[float]:
+    """Per seed: the wall time at which ``config`` first reaches the ``baseline`` run's final
+    parameter error (same scene and seed), as a fraction of the baseline's training time; NaN
+    if never."""
     out = []
     for run in runs:
         if run["scene"] != scene or run["config"] != config or run["status"] != "ran":
@@ -513,12 +514,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 def main(argv: Sequence[str] | None = None) -> None:
     a = parse_args(argv)
-    import torchir
-
-    torchir.backend.set_variant("auto")
-    _quiet()
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = start_trainer_suite(a.out)
     configs = [c for c in CONFIGURATIONS if a.only is None or c.scene in a.only]
     started = time.perf_counter()
     runs: list[dict[str, Any]] = []

@@ -49,7 +49,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import statistics
 import tempfile
 import time
 from collections.abc import Sequence
@@ -58,6 +57,7 @@ from pathlib import Path
 from typing import Any
 
 from torchir.bench import combined
+from torchir.bench.combined import _median, reach_fractions  # reach_fractions: per seed, against a reference run
 
 __all__ = ["CONFIGURATIONS", "WORKLOADS", "Workload", "main", "reach_fractions", "summarize", "tables"]
 
@@ -130,27 +130,6 @@ def run(workload: Workload, name: str, model: dict[str, Any], data: dict[str, An
 
 
 # --------------------------------------------------------------------------- summarising
-def reach_fractions(runs: list[dict[str, Any]], workload: str, config: str, reference: str) -> list[float]:
-    """Per seed: the wall time at which ``config`` first reaches the ``reference`` run's final
-    parameter error (same workload and seed), over the reference's training time; NaN if never."""
-    out = []
-    for r in runs:
-        if r["scene"] != workload or r["config"] != config or r["status"] != "ran":
-            continue
-        ref = next((b for b in runs if b["scene"] == workload and b["config"] == reference and b["seed"] == r["seed"]
-                    and b["status"] == "ran"), None)
-        if ref is None:
-            continue
-        hit = next((t for t, e in zip(r["elapsed"], r["param_error"]) if e <= ref["final_param_error"]), None)
-        out.append(hit / ref["train_seconds"] if hit is not None else float("nan"))
-    return out
-
-
-def _median(values: Sequence[float]) -> float:
-    kept = [v for v in values if v == v]
-    return statistics.median(kept) if kept else float("nan")
-
-
 def summarize(runs: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
     """Per workload, one row per configuration: medians over seeds and reach fractions."""
     out: dict[str, list[dict[str, Any]]] = {}
