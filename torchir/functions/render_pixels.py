@@ -32,46 +32,37 @@ class _PixelSettings(_args.RenderSettings):
     sensors: tuple[int, ...] = ()  # the listed sensors (``(sensor,)`` for one)
 
 
-def _film_rays(sensor: mi.Sensor, x: mi.Float, y: mi.Float, width, height, sampler: mi.Sampler):
+def _film_rays(sensors: Sequence[mi.Sensor], x: mi.Float, y: mi.Float, width, height, sampler: mi.Sampler,
+               view: mi.UInt32 | None = None):
     """Camera rays through uniformly jittered points of pixel ``(x, y)`` of a ``width x height``
-    grid over the film's crop window (the film's own pixels, or a coarser grid). Returns
-    ``(ray, ray weight)``."""
+    grid over the film's crop window (the film's own pixels, or a coarser grid), each lane's
+    from ``sensors[view]`` (``sensors[0]`` without ``view``). Every lane draws the same random
+    numbers whatever its sensor, so a lane's ray and path do not depend on which other views
+    share the wavefront. Returns ``(ray, ray weight)``."""
+    first = sensors[0]
     pos = mi.Vector2f(x, y) + sampler.next_2d()
     pos_01 = mi.Vector2f(pos.x / width, pos.y / height)
-    aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.0)
-    time = sensor.shutter_open()
-    if sensor.shutter_open_time() > 0:
-        time += sampler.next_1d() * sensor.shutter_open_time()
-    with dr.resume_grad():
-        return sensor.sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
-
-
-def _pixel_rays(sensors: list[mi.Sensor], index: mi.UInt32, sampler: mi.Sampler):
-    """Camera rays through the given film pixels: ``index`` is ``k * W * H + y * W + x`` for
-    pixel ``(x, y)`` of ``sensors[k]`` (one wavefront over every view; sensors of one size).
-    Every lane draws the same random numbers whatever its sensor, so a lane's ray and path do
-    not depend on which other views are in the wavefront."""
-    width, height = sensors[0].film().crop_size()
-    if len(sensors) == 1:
-        y = index // width
-        return _film_rays(sensors[0], mi.Float(index - y * width), mi.Float(y), float(width), float(height), sampler)
-    per_view = width * height
-    view = index // per_view
-    pixel = index - view * per_view
-    y = pixel // width
-    pos = mi.Vector2f(mi.Float(pixel - y * width), mi.Float(y)) + sampler.next_2d()
-    pos_01 = mi.Vector2f(pos.x / width, pos.y / height)
     aperture = sampler.next_2d() if any(s.needs_aperture_sample() for s in sensors) else mi.Vector2f(0.0)
-    time = sensors[0].shutter_open()
-    if sensors[0].shutter_open_time() > 0:
-        time += sampler.next_1d() * sensors[0].shutter_open_time()
+    time = first.shutter_open()
+    if first.shutter_open_time() > 0:
+        time += sampler.next_1d() * first.shutter_open_time()
     with dr.resume_grad():
-        ray, weight = sensors[0].sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
+        ray, weight = first.sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
         for k, sensor in enumerate(sensors[1:], start=1):
             ray_k, weight_k = sensor.sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
             mine = view == k
             ray, weight = dr.select(mine, ray_k, ray), dr.select(mine, weight_k, weight)
-    return ray, weight
+        return ray, weight
+
+
+def _pixel_rays(sensors: Sequence[mi.Sensor], index: mi.UInt32, sampler: mi.Sampler):
+    """Camera rays through the given film pixels: ``index`` is ``k * W * H + y * W + x`` for
+    pixel ``(x, y)`` of ``sensors[k]`` (one wavefront over every view; sensors of one size)."""
+    width, height = sensors[0].film().crop_size()
+    view = index // (width * height) if len(sensors) > 1 else None
+    pixel = index if view is None else index - view * (width * height)
+    y = pixel // width
+    return _film_rays(sensors, mi.Float(pixel - y * width), mi.Float(y), float(width), float(height), sampler, view)
 
 
 def _per_lane(array_type: type, per_pixel, spp: int):
@@ -128,7 +119,7 @@ def _one_path_pass(mi_scene: mi.Scene, sensor: int, x: mi.Float, y: mi.Float, w:
     ``w x h`` grid (Stage-1 probes of :mod:`torchir.functions.probe`)."""
     sampler = _seeded_sampler(seed, count)
     with dr.suspend_grad():
-        ray, weight = _film_rays(mi_scene.sensors()[sensor], x, y, w, h, sampler)
+        ray, weight = _film_rays([mi_scene.sensors()[sensor]], x, y, w, h, sampler)
         L, _, _, _ = mi_scene.integrator().sample(
             mode=dr.ADMode.Primal, scene=mi_scene, sampler=sampler, ray=ray,
             depth=mi.UInt32(0), δL=None, δaovs=None, state_in=None, active=mi.Bool(True),

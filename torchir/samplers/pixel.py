@@ -96,17 +96,12 @@ def sampled_loss(
 
     h, w = scene.resolution
     draws = _draws_by_view(batch.index, views, h * w)
-    if len(draws) == 1:
-        ((position, view, chosen, pixels),) = draws
-        radiance = render_pixels(scene, params, pixels, spp=spp, seed=seed(view), sensor=view, spp_grad=spp_grad)
-        target, weight = targets[position].flatten(1).t()[pixels], batch.weight[chosen]
-    else:  # several views: one wavefront over their pixels (one frozen pass, whatever the per-view counts)
-        listed = [view for _, view, _, _ in draws]
-        chosen = torch.cat([c for _, _, c, _ in draws])
-        local = torch.cat([k * h * w + p for k, (_, _, _, p) in enumerate(draws)])
-        radiance = render_pixels(scene, params, local, spp=spp, seed=seed(listed[0]), sensor=listed, spp_grad=spp_grad)
-        stacked = torch.stack([targets[position] for position, _, _, _ in draws]).flatten(2).transpose(1, 2).flatten(0, 1)
-        target, weight = stacked[local], batch.weight[chosen]
+    listed = [view for _, view, _, _ in draws]  # the views with draws: traced in one wavefront (one frozen pass)
+    index = torch.cat([k * h * w + pixels for k, (_, _, _, pixels) in enumerate(draws)])
+    sensor = listed[0] if len(listed) == 1 else listed
+    radiance = render_pixels(scene, params, index, spp=spp, seed=seed(listed[0]), sensor=sensor, spp_grad=spp_grad)
+    target = torch.cat([targets[position].flatten(1).t()[pixels] for position, _, _, pixels in draws])
+    weight = batch.weight[torch.cat([chosen for _, _, chosen, _ in draws])]
     terms = loss.pixel_terms(radiance, target, len(views) * h * w)
     return SampledLoss((weight * terms).sum(), radiance, target, weight)
 
