@@ -29,7 +29,7 @@ __all__ = ["render_pixels"]
 @dataclass(frozen=True)
 class _PixelSettings(_args.RenderSettings):
     index: mi.UInt32  # (N,) flat pixel indices over ``sensors``; not differentiable
-    sensors: tuple[int, ...] = ()  # the listed sensors (``(sensor,)`` for one)
+    sensors: tuple[int, ...]  # the listed sensors (``(sensor,)`` for one)
 
 
 def _film_rays(sensors: Sequence[mi.Sensor], x: mi.Float, y: mi.Float, width, height, sampler: mi.Sampler,
