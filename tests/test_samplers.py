@@ -705,3 +705,86 @@ def test_rademacher_directions():
 def test_repr_names_the_configuration():
     s = LossPixelSampler(resolution=(H, W), views=2, budget=7, refresh_every=5, levels=3, alpha=0.25, seed=9)
     assert repr(s) == "LossPixelSampler(budget=7, views=2, resolution=(16, 12), refresh_every=5, levels=3, alpha=0.25, seed=9)"
+
+
+# ------------------------------------------------------------------- several processes
+def _ranks(world: int, budget: int, **kw) -> list[AdaptivePixelSampler]:
+    g = torch.Generator().manual_seed(21)
+    p1, p2 = torch.rand(world, H, W, generator=g), torch.rand(world, H, W, generator=g)
+    samplers = []
+    for rank in range(world):
+        s = _sampler(views=world, budget=budget, seed=5, **kw)
+        s.update_from_maps(p1, p2)
+        s.distribute(rank, world)
+        samplers.append(s)
+    return samplers
+
+
+def test_distribute_checks_rank_world_and_budget():
+    s = _sampler(budget=3)
+    with pytest.raises(ValueError, match=r"^world must be an int >= 1, got 0$"):
+        s.distribute(0, 0)
+    with pytest.raises(ValueError, match=r"^rank must be an int in \[0, 2\), got 2$"):
+        s.distribute(2, 2)
+    with pytest.raises(ValueError, match=r"^rank must be an int in \[0, 2\), got True$"):
+        s.distribute(True, 2)
+    with pytest.raises(ValueError, match=r"^budget 3 is smaller than the 4 processes: every process needs at least one pixel draw$"):
+        s.distribute(0, 4)
+    assert (s.rank, s.world, s.share) == (0, 1, 3)  # a refused call changes nothing
+    s.distribute(2, 3)
+    assert (s.rank, s.world, s.share) == (2, 3, 1)
+
+
+@pytest.mark.parametrize("budget", [3, 7, 64])
+def test_processes_share_the_budget(budget):
+    samplers = _ranks(3, budget)
+    shares = [s.share for s in samplers]
+    assert sum(shares) == budget and max(shares) - min(shares) <= 1 and shares == sorted(shares, reverse=True)
+    for rank, s in enumerate(samplers):
+        batch = s.sample([rank])
+        assert batch.index.numel() == shares[rank]
+        assert bool(((batch.index // (H * W)) == rank).all())  # only this process's view
+
+
+def test_processes_draw_their_own_pixels_and_resume_their_stream():
+    """Each process has its own draws (one process's pixel layout is not repeated in the other
+    views), a single process keeps the sampler's generator, and a resumed process continues."""
+    a, b = _ranks(2, 64)
+    first_a, first_b = a.sample([0]), b.sample([1])
+    assert not torch.equal(first_a.index, first_b.index - H * W)
+    again = _ranks(2, 64)[0]
+    assert torch.equal(again.sample([0]).index, first_a.index)  # a function of (seed, rank, call)
+    state = a.state_dict()
+    following = a.sample([0])
+    resumed = _ranks(2, 64)[0]
+    resumed.load_state_dict(state)
+    assert resumed.draw_calls == 1 and torch.equal(resumed.sample([0]).index, following.index)
+    single = _sampler(views=2, budget=64, seed=5)
+    reference = _sampler(views=2, budget=64, seed=5)
+    single.distribute(0, 1)
+    assert torch.equal(single.sample().index, reference.sample().index)  # one process: unchanged
+
+
+def test_averaged_process_estimates_are_unbiased_for_the_mean_over_all_views():
+    """What DDP computes: the mean over processes of each one's weighted sum over its views."""
+    g = torch.Generator().manual_seed(12)
+    losses = torch.rand(2 * H * W, generator=g, dtype=torch.float64) ** 4
+    samplers = _ranks(2, 33)  # 17 + 16 draws
+    est = []
+    for _ in range(3000):
+        per_process = []
+        for rank, s in enumerate(samplers):
+            batch = s.sample([rank])
+            per_process.append(float((batch.weight.double() * losses[batch.index]).sum()))
+        est.append(sum(per_process) / 2)
+    est = torch.tensor(est, dtype=torch.float64)
+    se = float(est.std()) / math.sqrt(est.numel())
+    assert abs(float(est.mean()) - float(losses.mean())) < 4 * se
+
+
+def test_stage1_of_a_distributed_sampler_needs_torch_distributed():
+    s = _sampler(budget=4)
+    s.scene = object()  # never reached: the check comes before any render
+    s.distribute(1, 2)
+    with pytest.raises(RuntimeError, match=r"^a sampler distributed over several processes needs torch.distributed initialised \(DDP\)$"):
+        s.update({}, torch.zeros(1, 3, H, W))

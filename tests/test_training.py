@@ -215,7 +215,7 @@ def test_bounds_hold_after_every_step(tmp_path):
         assert float(value.min()) >= 0.0 and float(value.max()) <= 1.0
 
 
-def _multiview_run(tmp_path: Path, *extra: str) -> dict[str, torch.Tensor]:
+def _multiview_run(tmp_path: Path, *extra: str, paths_per_step: int = 2 * 8 * 8 * (2 + 2)) -> dict[str, torch.Tensor]:
     args = [
         sys.executable, "-m", "torchir", "fit", "--config", str(ROOT / "configs" / "multiview.yaml"),
         "--model.resolution", "8", "--model.scene_options", "{views: 2, texture: 4}", "--model.spp", "2",
@@ -229,7 +229,7 @@ def _multiview_run(tmp_path: Path, *extra: str) -> dict[str, torch.Tensor]:
     assert result.returncode == 0, result.stderr[-3000:]
     rows = list(csv.DictReader(open(_run_dir(tmp_path, "multiview") / "metrics.csv")))
     paths = {float(r["paths_per_step"]) for r in rows if r.get("paths_per_step")}
-    assert paths == {2 * 8 * 8 * (2 + 2)}  # summed over processes: 2 views in all, not 2 per process
+    assert paths == {paths_per_step}  # summed over processes: 2 views in all, not 2 per process
     return _latents(_run_dir(tmp_path, "multiview") / "checkpoints" / "last.ckpt")
 
 
@@ -241,6 +241,24 @@ def test_ddp_two_processes_match_one_process(tmp_path):
     for key in single:
         assert not torch.allclose(single[key], initial)  # the run moved the texture
         torch.testing.assert_close(ddp[key], single[key], rtol=1e-4, atol=1e-6)
+
+
+def test_ddp_pixel_sampling_shares_budget_and_stage1(tmp_path):
+    """Pixel sampling over 2 processes: the 21-pixel budget and Stage 1 are shared, not repeated
+    per process (paths per step summed over processes equal one process's: 11 + 10 draws), and
+    the pmf Stage 1 assembles from the two processes' views is the single process's."""
+    sampler = ("--model.sampler", "{type: adaptive, budget: 21, refresh_every: 1000, seed: 4}", "--trainer.log_every_n_steps", "1")
+    paths = 21 * (2 + 2)  # + Stage 1 on step 0: 2 views x 4 passes x (8x8 + 4x4) px x 2 (probe)
+    stage1 = 2 * 4 * (8 * 8 + 4 * 4) * 2
+    rows = {}
+    for name, extra in (("one", ()), ("two", ("--trainer.strategy", "ddp", "--trainer.devices", "2", "--trainer.accelerator", "cpu"))):
+        latents = _multiview_run(tmp_path / name, *sampler, *extra, "--trainer.max_steps", "1", paths_per_step=paths + stage1)
+        assert not torch.allclose(next(iter(latents.values())), torch.tensor(0.5))  # the step moved the texture
+        state = torch.load(_run_dir(tmp_path / name, "multiview") / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+        rows[name] = state["torchir_sampler"]
+    assert rows["one"]["refreshes"] == rows["two"]["refreshes"] == 1
+    assert not torch.allclose(rows["one"]["pmf"], torch.full_like(rows["one"]["pmf"], 1 / rows["one"]["pmf"].numel()))
+    torch.testing.assert_close(rows["two"]["pmf"], rows["one"]["pmf"], rtol=0, atol=0)
 
 
 def test_tensorboard_logs_beside_the_csv_when_installed(tmp_path, monkeypatch):

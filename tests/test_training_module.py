@@ -43,7 +43,7 @@ def make(**kwargs) -> InverseRenderingModule:
 def attach(model, **attrs) -> SimpleNamespace:
     """A stand-in trainer with the attributes module.py reads."""
     trainer = SimpleNamespace(**{
-        "world_size": 1, "global_step": 0, "current_epoch": 0, "log_every_n_steps": 1, "loggers": [],
+        "world_size": 1, "global_rank": 0, "global_step": 0, "current_epoch": 0, "log_every_n_steps": 1, "loggers": [],
         "should_stop": False, "datamodule": None, "log_dir": None, "default_root_dir": "/tmp/root",
         "progress_bar_callback": None, "callbacks": [], **attrs,
     })
@@ -834,6 +834,13 @@ def test_setup_refuses_clipped_targets_in_pixel_mode():
     full = make()
     attach(full, datamodule=SimpleNamespace(synthetic=False, saturation=0.75))
     full.setup("fit")
+
+
+def test_setup_shares_the_pixel_sampler_with_the_other_processes():
+    model = make(sampler={"type": "uniform", "budget": 5})
+    attach(model, datamodule=None, world_size=2, global_rank=1)
+    model.setup("fit")
+    assert (model.sampler.rank, model.sampler.world, model.sampler.share) == (1, 2, 2)
 
 
 # ------------------------------------------------------------------------- optimisers

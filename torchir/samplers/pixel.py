@@ -167,7 +167,7 @@ class PixelSampler:
             torch-only use with ``resolution`` and ``views``.
         budget: pixel draws per step: an int ``N >= 1``, or a float in ``(0, 1]`` (fraction of
             all pixels of all views, ``max(1, round(f m))``). ``N > m`` is allowed (draws are
-            with replacement).
+            with replacement). Over all processes when distributed (:meth:`distribute`).
         refresh_every: steps between Stage-1 refreshes (``R``; alias ``update_every``).
         levels: multi-resolution depth ``D`` (capped so the coarsest grid has sides >= 4 px).
         alpha: weight of the uniform pmf mixed in, in ``[0, 1]`` (spec E15).
@@ -253,6 +253,8 @@ class PixelSampler:
         self._set_pmf(torch.full((views, h, w), 1.0 / self.pixel_count, dtype=torch.float64))
         self.last_update: int | None = None  # step of the last refresh
         self.refreshes = 0
+        self.rank, self.world = 0, 1  # this process's share of the work (see distribute)
+        self.draw_calls = 0  # sample() calls: with several processes, each call's draws are seeded by it
         self._signature: tuple | None = None  # parameter shapes and views of the last refresh
         self._stats: dict[str, float] = {"predicted_gain": 1.0}
 
@@ -276,25 +278,65 @@ class PixelSampler:
         """Stage-1 grid sizes ``(h_d, w_d)``, finest first."""
         return _stage1_grids(self.resolution, self.scale, self.min_side, self.levels)
 
+    # ------------------------------------------------------------------------ processes
+    def distribute(self, rank: int, world: int) -> None:
+        """Share the work with ``world`` processes (DDP), this one being ``rank``.
+
+        ``budget`` then counts over all processes: :meth:`sample` draws this process's share
+        (``budget // world``, one more on the first ``budget % world`` ranks) from its own
+        random stream (seeded by ``(seed, rank, call)``, so processes never repeat each other's
+        pixel layout and a resumed run continues it), and :meth:`update` probes every
+        ``world``-th view and sums the maps over processes (``torch.distributed``), so every
+        process holds the pmf one process would have computed at that refresh. Each process's
+        weighted loss estimates the mean loss over its own views; averaging the processes'
+        gradients (as DDP does, over equal view counts) estimates it over all of them.
+        """
+        if isinstance(world, bool) or not isinstance(world, int) or world < 1:
+            raise ValueError(f"world must be an int >= 1, got {world!r}")
+        if isinstance(rank, bool) or not isinstance(rank, int) or not 0 <= rank < world:
+            raise ValueError(f"rank must be an int in [0, {world}), got {rank!r}")
+        if self.budget < world:
+            raise ValueError(
+                f"budget {self.budget} is smaller than the {world} processes: every process needs at least one pixel draw"
+            )
+        self.rank, self.world = rank, world
+
+    @property
+    def share(self) -> int:
+        """Pixel draws of this process per step (``budget`` with one process)."""
+        return self.budget // self.world + (1 if self.rank < self.budget % self.world else 0)
+
+    def _draw_generator(self) -> torch.Generator:
+        """The generator of this call's draws: the sampler's own with one process; with several,
+        a fresh one per call seeded by ``(seed, rank, call)`` (Stage 1 keeps the shared one, which
+        every process advances alike)."""
+        if self.world == 1:
+            return self.generator
+        mixed = (self.seed * 0x9E3779B97F4A7C15 + (self.rank + 1) * 0xBF58476D1CE4E5B9 + self.draw_calls * 0x94D049BB133111EB)
+        return torch.Generator().manual_seed(mixed % 2**63)
+
     # ---------------------------------------------------------------------------- draws
     def sample(self, views: Sequence[int] | None = None) -> PixelBatch:
-        """Draw ``budget`` pixels i.i.d. from the pmf (restricted to ``views`` when given).
+        """Draw ``budget`` pixels (this process's :attr:`share`) i.i.d. from the pmf (restricted
+        to ``views`` when given).
 
         With ``views``, the pmf is conditioned on those views' pixels and the weights are
         ``1 / (N m_V p_V[j])`` with ``m_V`` their pixel count: the estimate is of the mean loss
         over those views, as a full render of that view batch would give.
         """
-        n = self.budget
+        n = self.share
+        generator = self._draw_generator()
+        self.draw_calls += 1
         views = list(range(self.views)) if views is None else sorted({int(v) for v in views})
         if views == list(range(self.views)):
-            index, prob = _pmf.draw(self._cdf, n, self.generator, self._pdf)
+            index, prob = _pmf.draw(self._cdf, n, generator, self._pdf)
             m = self.pixel_count
         else:
             if not views or views[0] < 0 or views[-1] >= self.views:
                 raise ValueError(f"views must be a non-empty subset of range({self.views}), got {views}")
             per_view = self.resolution[0] * self.resolution[1]
             sub = self.pdf_image()[views].reshape(-1)
-            local, prob = _pmf.draw(_pmf.cumulative(sub), n, self.generator)
+            local, prob = _pmf.draw(_pmf.cumulative(sub), n, generator)
             view_ids = torch.tensor(views, dtype=torch.int64)
             index = view_ids[local // per_view] * per_view + local % per_view
             m = len(views) * per_view
@@ -366,6 +408,8 @@ class PixelSampler:
         started = time.perf_counter()
         if self.scene is None:
             raise RuntimeError(f"{type(self).__name__}.update needs a scene; use update_from_maps for torch-only use")
+        if self.world > 1:
+            _check_process_group()
         views = list(range(self.views)) if views is None else [int(v) for v in views]
         targets = self._check_targets(targets, views)
         loss = _check_loss(loss)
@@ -375,9 +419,13 @@ class PixelSampler:
         probed = {k: v for k, v in params.items() if v.is_floating_point()}
         from ..functions.probe import probe_pixels  # Dr.Jit side, loaded on first use
 
+        mine = [v for i, v in enumerate(views) if i % self.world == self.rank]
         for i, v in enumerate(views):
+            # every process draws every view's tangents and seed: the shared generator stays in step
             tangents = {k: _rademacher(val, self.generator) for k, val in probed.items()} if p2 is not None and probed else None
             seed = int(torch.randint(0, 2**32 - 1, (1,), generator=self.generator))
+            if v not in mine:
+                continue
             radiance, derivative = probe_pixels(
                 self.scene, params, grids, passes=self.stage1_spp, seed=seed, sensor=v, tangents=tangents, step=self.fd_step
             )
@@ -386,10 +434,12 @@ class PixelSampler:
                 p1[d][v] = _adjoint_second_moment(loss, radiance[d], target)
                 if p2 is not None and derivative is not None:
                     p2[d][v] = derivative[d].double().square().sum(1).mean(0)  # E13/E14
+        if self.world > 1:
+            _sum_over_processes(p1 + (p2 or []))  # each map is non-zero in one process only: the sums are exact
         self.update_from_maps(p1, p2)
         # only a refresh that finished counts: one that raised stays due
         self._signature, self.last_update, self.refreshes = signature, step, self.refreshes + 1
-        paths = len(views) * self.stage1_spp * sum(h * w for h, w in grids) * (2 if p2 is not None and probed else 1)
+        paths = len(mine) * self.stage1_spp * sum(h * w for h, w in grids) * (2 if p2 is not None and probed else 1)
         self._stats.update(stage1_seconds=time.perf_counter() - started, stage1_paths=float(paths))
 
     def _check_targets(self, targets, views: list[int]) -> list[torch.Tensor]:
@@ -422,6 +472,7 @@ class PixelSampler:
             "generator": self.generator.get_state(),
             "last_update": self.last_update,
             "refreshes": self.refreshes,
+            "draw_calls": self.draw_calls,
             "signature": self._signature,
             "stats": dict(self._stats),
         }
@@ -435,6 +486,7 @@ class PixelSampler:
         self._set_pmf(pmf.to(torch.float64))
         self.generator.set_state(state["generator"])
         self.last_update, self.refreshes = state["last_update"], state["refreshes"]
+        self.draw_calls = int(state.get("draw_calls", 0))
         self._signature, self._stats = state["signature"], dict(state["stats"])
 
     def __repr__(self) -> str:
@@ -442,6 +494,21 @@ class PixelSampler:
             f"{type(self).__name__}(budget={self.budget}, views={self.views}, resolution={self.resolution}, "
             f"refresh_every={self.refresh_every}, levels={self.levels}, alpha={self.alpha}, seed={self.seed})"
         )
+
+
+def _check_process_group() -> None:
+    import torch.distributed as dist
+
+    if not (dist.is_available() and dist.is_initialized()):
+        raise RuntimeError("a sampler distributed over several processes needs torch.distributed initialised (DDP)")
+
+
+def _sum_over_processes(maps: list[torch.Tensor]) -> None:
+    """Sum ``maps`` in place over the processes of the default ``torch.distributed`` group."""
+    import torch.distributed as dist
+
+    for value in maps:
+        dist.all_reduce(value, op=dist.ReduceOp.SUM)
 
 
 def _check_loss(loss: nn.Module | None) -> nn.Module:

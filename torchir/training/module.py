@@ -383,6 +383,8 @@ class InverseRenderingModule(pl.LightningModule):
                 f"{datamodule.saturation} (8/16-bit files): use EXR targets, or set data.saturation: null"
             )
         self._truth = self.ground_truth(explicit_only=not synthetic)
+        if self.pixel_mode:  # under DDP the pixel budget and Stage 1 are shared by the processes
+            self.sampler.distribute(self.trainer.global_rank, self.trainer.world_size)
         # trainer.log_dir is a collective under DDP: resolve it here, on every rank, once.
         self._results_dir = Path(self.trainer.log_dir or self.trainer.default_root_dir)
 
