@@ -222,6 +222,35 @@ def test_screen_search_is_exact_within_its_window(exclude_self):
         check(got, brute(P, Q, 3, radius, exclude_self, valid, allowed=_window_rule(wins)))
 
 
+@pytest.mark.parametrize("exclude_self", [False, True])
+def test_screen_chains_search_only_their_own_sample_index(exclude_self):
+    """``chains``: sample s of a pixel finds the exact k nearest among samples s of its window."""
+    n = W * H * SPP
+    P = _screen_points(6)
+    Q = P if exclude_self else _screen_points(7)
+    valid = np.random.default_rng(8).random(n) < 0.8
+    in_window = _window_rule(np.full(n, 2))
+    same_chain = lambda q, j: in_window(q, j) and q % SPP == j % SPP  # noqa: E731
+    got = knn_screen(_pts(P), mi.Bool(valid), _pts(Q), ScreenLayout(W, H, SPP, 2, chains=True), 3, 10.0, exclude_self)
+    check(got, brute(P, Q, 3, 10.0, exclude_self, valid, allowed=same_chain))
+    every = brute(P, Q, 3, 10.0, exclude_self, valid, allowed=in_window)
+    assert not np.array_equal(every[0], brute(P, Q, 3, 10.0, exclude_self, valid, allowed=same_chain)[0])
+    one = np.arange(W * H)  # one sample per pixel: chains change nothing
+    P1 = P[one * SPP]
+    layout = ScreenLayout(W, H, 1, 2, chains=True)
+    check(knn_screen(_pts(P1), mi.Bool(valid[one * SPP]), _pts(P1), layout, 3, 10.0),
+          knn_screen_reference := brute(P1, P1, 3, 10.0, False, valid[one * SPP],
+                                        allowed=lambda q, j: abs(q % W - j % W) <= 2 and abs(q // W - j // W) <= 2))
+    assert knn_screen_reference[1].any()
+
+
+def test_neighbour_search_keeps_chains_on_the_screen_search():
+    layout = ScreenLayout(W, H, SPP, 2, chains=True)
+    assert NeighbourSearch().candidates(layout) == ("screen",)
+    assert NeighbourSearch().candidates(ScreenLayout(W, H, 1, 2, chains=True))[-1] == "screen"
+    assert len(NeighbourSearch().candidates(ScreenLayout(W, H, 1, 2, chains=True))) > 1
+
+
 def test_screen_search_equals_kdtree_and_grid_where_the_window_covers_the_radius():
     n = W * H * SPP
     P, Q = _screen_points(3), _screen_points(4)

@@ -41,7 +41,7 @@ def _options(r: ReSTIRSampler) -> dict:
         "candidates": i.candidates, "neighbors": i.neighbors, "radius": i.radius, "m_cap": i.m_cap,
         "temporal": i.temporal, "spatial": i.spatial, "burn_in": i.burn_in, "grad_paths": i.grad_paths,
         "forward_only": i.forward_only, "nn_backend": i.nn_backend, "normal_threshold": i.normal_threshold,
-        "target": i.target, "freeze": i.freeze, "multiview": i.multiview,
+        "target": i.target, "freeze": i.freeze, "multiview": i.multiview, "spp_chains": i.spp_chains,
     }
 
 
@@ -59,7 +59,7 @@ def test_defaults(scene):
     assert _options(r) == {
         "candidates": 16, "neighbors": 8, "radius": 0.0, "m_cap": 32.0, "temporal": True, "spatial": True,
         "burn_in": 32, "grad_paths": "shared", "forward_only": False, "nn_backend": "auto",
-        "normal_threshold": 0.9, "target": "shadowed", "freeze": True, "multiview": "auto",
+        "normal_threshold": 0.9, "target": "shadowed", "freeze": True, "multiview": "auto", "spp_chains": True,
     }
     assert type(r.integrator.radius) is float and type(r.integrator.m_cap) is float
 
@@ -68,13 +68,13 @@ def test_options_reach_the_integrator(scene):
     r = ReSTIRSampler(
         scene, candidates=3, neighbors=5, radius=0.25, m_cap=7, temporal=False, spatial=True, burn_in=4,
         grad_paths="decorrelated", nn_backend="grid", seed=11, normal_threshold=0.5, target="unshadowed",
-        freeze=False, multiview="carry_over",
+        freeze=False, multiview="carry_over", spp_chains=False,
     )
     assert r.preset == "restir" and r.seed == 11
     assert _options(r) == {
         "candidates": 3, "neighbors": 5, "radius": 0.25, "m_cap": 7.0, "temporal": False, "spatial": True,
         "burn_in": 4, "grad_paths": "decorrelated", "forward_only": False, "nn_backend": "grid",
-        "normal_threshold": 0.5, "target": "unshadowed", "freeze": False, "multiview": "carry_over",
+        "normal_threshold": 0.5, "target": "unshadowed", "freeze": False, "multiview": "carry_over", "spp_chains": False,
     }
     r = ReSTIRSampler(scene, candidates=5, radius=1, temporal=True, spatial=False, nn_backend="screen")
     i = r.integrator

@@ -178,12 +178,15 @@ def _scan_buckets(buckets: tuple, points: mi.Point3f, queries: mi.Point3f, k: in
 @dataclass(frozen=True)
 class ScreenLayout:
     """Lane layout shared by the points and the queries of :func:`knn_screen`: lane
-    ``(y * width + x) * spp + s`` is sample ``s`` of pixel ``(x, y)``."""
+    ``(y * width + x) * spp + s`` is sample ``s`` of pixel ``(x, y)``. ``chains``: sample ``s``
+    of a pixel searches only samples ``s`` of the pixels around it (``spp`` interleaved chains
+    of one sample per pixel)."""
 
     width: int
     height: int
     spp: int
     window: int = 2  # half-width in pixels of the searched square
+    chains: bool = False
 
 
 def _insert_top_k(bd: list, bi: list, accept, dc, ic) -> None:
@@ -221,7 +224,8 @@ def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: 
     like :func:`knn_kdtree` (``index`` into ``points``).
 
     A sample ``w + 1`` pixels away lies more than ``w`` pixel footprints away, so a window of
-    ``ceil(radius / footprint)`` around a query finds every point within the radius."""
+    ``ceil(radius / footprint)`` around a query finds every point within the radius (with
+    ``layout.chains``: every point of the query's own chain)."""
     w, h, spp, win = layout.width, layout.height, layout.spp, layout.window
     n = w * h * spp
     if dr.width(points) != n or dr.width(queries) != n:
@@ -233,8 +237,11 @@ def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: 
     else:
         win_q = dr.minimum(mi.UInt32(windows), win)
     side_q = 2 * win_q + 1
-    count_q = side_q * side_q * spp
+    chains = layout.chains and spp > 1
+    per_pixel = 1 if chains else spp  # samples searched in each pixel of the window
+    count_q = side_q * side_q * per_pixel
     pix = lane // spp
+    own = lane - pix * spp  # the query's sample index in its pixel
     qx, qy = mi.Int32(pix % w), mi.Int32(pix // w)
     r2 = dr.opaque(mi.Float, radius * radius)
     w_o, h_o, spp_o = dr.opaque(mi.Int32, w), dr.opaque(mi.Int32, h), dr.opaque(mi.UInt32, spp)
@@ -244,8 +251,11 @@ def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: 
 
     def body(c, *best):
         bd, bi = list(best[:k]), list(best[k:])
-        cell = c // spp_o
-        s = c - cell * spp_o
+        if chains:
+            cell, s = c, own
+        else:
+            cell = c // spp_o
+            s = c - cell * spp_o
         cx = qx + mi.Int32(cell % side_q) - mi.Int32(win_q)
         cy = qy + mi.Int32(cell // side_q) - mi.Int32(win_q)
         inside = (cx >= 0) & (cx < w_o) & (cy >= 0) & (cy < h_o)
@@ -344,6 +354,8 @@ class NeighbourSearch:
         self.last: str | None = None  # the back-end of the last call
 
     def candidates(self, layout: ScreenLayout | None) -> tuple[str, ...]:
+        if layout is not None and layout.chains and layout.spp > 1:
+            return ("screen",)  # only it searches within a chain
         out = ("kdtree", "grid") if _default_backend() == "kdtree" else ("grid",)
         return out + (("screen",) if layout is not None else ())
 

@@ -59,7 +59,13 @@
        sensor that has not moved; else the others). All find the same neighbours where the
        screen window (radius / 5th-percentile pixel footprint, 1-3 pixels) covers the radius.
      - auto
-
+   * - ``spp_chains``
+     - bool
+     - at ``spp > 1``, sample ``s`` of a pixel reuses only samples ``s`` of its neighbours (``spp``
+       interleaved chains; the screen search scans ``spp`` times fewer samples; a pixel's
+       samples stay independent). Measured at 128², 4 spp: 0.66x / 0.59x the step time and
+       lower gradient error (``oxalis_lite`` 0.028 vs 0.038, ``ajar_painting`` 0.029 vs 0.031).
+     - True
    * - ``target``
      - str
      - ``shadowed``: p̂ includes visibility, one shadow ray per candidate and per neighbour
@@ -124,6 +130,7 @@ _OPTIONS = {
     "target": "shadowed",
     "freeze": True,
     "multiview": "auto",
+    "spp_chains": True,
 }
 MULTIVIEW = ("auto", "per_sensor", "carry_over")
 STORE = -1  # the state key of the one reservoir store of multiview="carry_over"
@@ -236,6 +243,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if cfg["multiview"] not in MULTIVIEW:
             raise ValueError(f"multiview must be 'auto', 'per_sensor' or 'carry_over', got {cfg['multiview']!r}")
         self.multiview = cfg["multiview"]
+        self.spp_chains = bool(cfg["spp_chains"])
         self._neighbour_search = _knn.NeighbourSearch(self.nn_backend)
         self._emitter_watch = EmitterWatch()
         self.freeze = bool(cfg["freeze"])
@@ -354,7 +362,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             source = "none"
         k = self.neighbors if self.spatial else 1
         static = source != "temporal" or prev_camera == camera  # same view, same lane layout
-        layout = _knn.ScreenLayout(w, h, spp, st.window) if static else None
+        layout = _knn.ScreenLayout(w, h, spp, st.window, self.spp_chains) if static else None
         reproject = source == "temporal" and self.carries_over(scene)  # the store: any views
         freeze = self.freeze and (source == "none" or reproject or (layout is not None and self.nn_backend in ("auto", "screen")))
         if freeze:

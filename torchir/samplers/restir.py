@@ -67,6 +67,11 @@ class ReSTIRSampler:
             :attr:`steps` then counts the store's steps under key -1) or ``"auto"``
             (``carry_over`` for scenes with several sensors: 1.9-2.2x lower error x time than
             per-sensor chains in ``torchir bench restir_views``).
+        spp_chains: at ``spp > 1``, sample ``s`` of a pixel reuses only samples ``s`` of the
+            pixels around it (``spp`` interleaved chains: a pixel's samples stay independent, and
+            the screen search scans ``spp`` times fewer samples). Measured at 128², 4 spp
+            against one search over every sample: gradient error 0.028 vs 0.038 (``oxalis_lite``)
+            and 0.029 vs 0.031 (``ajar_painting``) at 0.66x and 0.59x the step time.
 
     Example:
         >>> scene = torchir.Scene.builtin("oxalis_lite", resolution=32)
@@ -94,6 +99,7 @@ class ReSTIRSampler:
         target: str = "shadowed",
         freeze: bool | None = None,
         multiview: str = "auto",
+        spp_chains: bool = True,
     ) -> None:
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a torchir.Scene, got {type(scene).__name__}")
@@ -129,6 +135,7 @@ class ReSTIRSampler:
             target=target,
             freeze=backend.frozen_renders() if freeze is None else bool(freeze),
             multiview=multiview,
+            spp_chains=spp_chains,
         )
 
     # ------------------------------------------------------------------ used by render()
