@@ -171,7 +171,7 @@ def test_defaults_and_initial_state():
     got = {k: getattr(i, k) for k in restir_di._OPTIONS}
     assert got == {"candidates": 16, "neighbors": 8, "radius": 0.0, "normal_threshold": 0.9, "m_cap": 32.0,
                    "temporal": True, "spatial": True, "burn_in": 32, "grad_paths": "shared", "forward_only": False,
-                   "nn_backend": "auto", "target": "shadowed", "freeze": True, "multiview": "auto"}
+                   "nn_backend": "auto", "target": "shadowed", "freeze": True, "multiview": "auto", "spp_chains": True}
     assert type(i.m_cap) is float and type(i.radius) is float and type(i.normal_threshold) is float
     assert i.states == {} and i.last == {} and i.timings == {} and i.stats == {}
     assert i.last_pass_frozen is False and i._frozen_pass is None and i._last_pass is None
