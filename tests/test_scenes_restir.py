@@ -108,3 +108,14 @@ def test_occluded_lights_blocker_is_a_mesh_whose_shadow_is_seen():
     no_blocker = scene.get("blocker.vertex_positions") + torch.tensor([0.0, 0.0, 50.0]).repeat(24)
     lit = render(scene, {"blocker.vertex_positions": no_blocker}, spp=64, seed=0)
     assert float(lit.mean()) > 1.05 * float(a.mean())  # the shadow darkens the view
+
+
+def test_oxalis_lite_views_on_an_arc_all_see_the_canvas():
+    scene = torchir.Scene.builtin("oxalis_lite", resolution=16, views=3)
+    assert scene.sensor_count == 3 and torchir.Scene.builtin("oxalis_lite", resolution=16).sensor_count == 1
+    images = [render(scene, {}, spp=4, seed=1, sensor=v) for v in range(3)]
+    assert all(float(i.mean()) > 0.01 for i in images)
+    assert not torch.allclose(images[0], images[2])  # different viewpoints
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match=r"^views must be an int >= 1, got "):
+            torchir.scenes.get("oxalis_lite").build(resolution=16, views=bad)

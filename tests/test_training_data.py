@@ -315,12 +315,12 @@ def test_read_target_nonfinite(tmp_path, bad_value):
 # ---------------------------------------------------------------- dataloader
 
 
-def loader_for(views, per_step=None, world=1, trainer=True):
+def loader_for(views, per_step=None, world=1, trainer=True, rank=0):
     dm = ViewDataModule(views_per_step=per_step)
     dm.views = list(views)
     dm.targets = [image(value=float(v)) for v in views]
     if trainer:
-        dm.trainer = SimpleNamespace(world_size=world)
+        dm.trainer = SimpleNamespace(world_size=world, global_rank=rank)
     return dm
 
 
@@ -335,11 +335,19 @@ def test_train_dataloader_default_all_views():
 
 
 def test_train_dataloader_in_order_and_per_process():
-    dm = loader_for([4, 1, 3, 0], per_step=4, world=2)
-    loader = dm.train_dataloader()
-    assert loader.batch_size == 2
-    assert [b["view"].tolist() for b in loader] == [[4, 1], [3, 0]]  # not shuffled
-    assert [b["view"].tolist() for b in loader] == [[4, 1], [3, 0]]
+    """Under DDP a view stays with one process (position mod world), epoch after epoch, and the
+    processes' batches of a step together are the single process's batch of that step."""
+    single = [b["view"].tolist() for b in loader_for([4, 1, 3, 0], per_step=2).train_dataloader()]
+    assert single == [[4, 1], [3, 0]]  # in order, not shuffled
+    for per_step, want in ((4, ([[4, 3]], [[1, 0]])), (2, ([[4], [3]], [[1], [0]]))):
+        for rank in (0, 1):
+            loader = loader_for([4, 1, 3, 0], per_step=per_step, world=2, rank=rank).train_dataloader()
+            assert loader.batch_size == per_step // 2
+            assert [b["view"].tolist() for b in loader] == want[rank]
+            assert [b["view"].tolist() for b in loader] == want[rank]  # the next epoch: the same views
+    per_process = zip(*([b["view"].tolist() for b in loader_for([4, 1, 3, 0], per_step=2, world=2, rank=r).train_dataloader()]
+                        for r in (0, 1)))
+    assert [sorted(a + b) for a, b in per_process] == [sorted(s) for s in single]
 
 
 def test_train_dataloader_no_trainer():

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -66,17 +65,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 def views_scene(resolution: int, views: int) -> torchir.Scene:
     """``oxalis_lite`` seen by ``views`` cameras on a 70-degree arc, 3 units from the canvas."""
-    from torchir.scenes import oxalis_lite
-    from torchir.scenes._common import perspective
-
-    torchir.backend.variant()
-    d = oxalis_lite.build(resolution=resolution)
-    del d["sensor"]
-    for v in range(views):
-        a = math.radians(-35 + 70 * v / max(views - 1, 1))
-        origin = [3.0 * math.sin(a), 0.4 * math.cos(3 * a), 3.0 * math.cos(a)]
-        d[f"view{v:02d}"] = perspective(origin, [0, 0, 0], [0, 1, 0], 40.0, resolution, resolution)
-    return torchir.Scene.from_dict(d)
+    return torchir.Scene.builtin("oxalis_lite", resolution=resolution, views=views)
 
 
 def methods(a: argparse.Namespace) -> dict[str, dict[str, Any] | None]:

@@ -35,6 +35,7 @@ def build(
     dim_lights: int = 8,
     hidden_lights: int = 16,
     emitter_pdf: str = "uniform",
+    views: int = 1,
 ) -> dict[str, Any]:
     """Mitsuba dict of the scene at ``resolution`` (default 64x64).
 
@@ -43,11 +44,15 @@ def build(
         dim_lights: dim point lights in front of the canvas (total intensity about 1).
         hidden_lights: bright point lights behind the canvas (no contribution).
         emitter_pdf: ``"uniform"`` or ``"power"`` emitter selection (``sampling_weight``).
+        views: cameras; more than 1 puts them on a 70-degree arc 3 units from the canvas
+            (``view00``, ``view01``, ...; multi-view ReSTIR, DDP).
     """
     if emitter_pdf not in ("uniform", "power"):
         raise ValueError(f"emitter_pdf must be 'uniform' or 'power', got {emitter_pdf!r}")
     if texture < 1 or dim_lights < 0 or hidden_lights < 0:
         raise ValueError("texture must be >= 1 and the light counts >= 0")
+    if isinstance(views, bool) or not isinstance(views, int) or views < 1:
+        raise ValueError(f"views must be an int >= 1, got {views!r}")
     h, w = resolution_hw(resolution, 64)
     T = mi.ScalarTransform4f
     spots = {
@@ -91,4 +96,10 @@ def build(
         scene[name] = {"type": "point", "position": [float(v) for v in position], "intensity": {"type": "rgb", "value": intensity}}
         if emitter_pdf == "power":
             scene[name]["sampling_weight"] = 4 * math.pi * _lum(intensity)
+    if views > 1:
+        del scene["sensor"]
+        for v in range(views):
+            a = math.radians(-35 + 70 * v / (views - 1))
+            origin = [3.0 * math.sin(a), 0.4 * math.cos(3 * a), 3.0 * math.cos(a)]
+            scene[f"view{v:02d}"] = perspective(origin, [0, 0, 0], [0, 1, 0], 40.0, h, w)
     return scene

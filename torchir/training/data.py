@@ -152,4 +152,15 @@ class ViewDataModule(pl.LightningDataModule):
             raise ValueError(f"data.views_per_step must be in [1, {len(self.views)}], got {per_step}")
         if per_step % world:
             raise ValueError(f"data.views_per_step ({per_step}) must be divisible by the number of processes ({world})")
-        return DataLoader(ViewDataset(self.views, self.targets), batch_size=per_step // world, shuffle=False, num_workers=0)
+        dataset = ViewDataset(self.views, self.targets)
+        sampler = None
+        if world > 1:
+            # Each view stays with one process (its rank: position mod world). Lightning's own
+            # sampler reshuffles the training views over the processes every epoch, so a view's
+            # ReSTIR chain or carried-over store was split between processes (every process burnt
+            # in every view); with this one the processes' batches of a step together are the
+            # single process's batch.
+            from torch.utils.data.distributed import DistributedSampler
+
+            sampler = DistributedSampler(dataset, num_replicas=world, rank=self.trainer.global_rank, shuffle=False)
+        return DataLoader(dataset, batch_size=per_step // world, shuffle=False, sampler=sampler, num_workers=0)
