@@ -998,3 +998,16 @@ def test_freeze_follows_torchirs_switch_and_falls_back_loudly(oxalis):
     want = render(oxalis, {}, spp=1, seed=0, sampler=ReSTIRSampler(oxalis, preset="b2", candidates=2, freeze=False))
     assert torch.equal(img, want)
     assert r.integrator.freeze is False and r.integrator.last_pass_frozen is False
+
+
+def test_per_sensor_chains_of_many_views_record_without_dr_jit_warnings(capfd):
+    """Six sensors take 12 recordings of the frozen pass (fresh RIS and reuse per sensor): more
+    than Dr.Jit's default warning threshold (10), which is not a problem here."""
+    scene = torchir.Scene.builtin("oxalis_lite", resolution=8, views=6, texture=2, dim_lights=1, hidden_lights=1)
+    r = ReSTIRSampler(scene, candidates=2, burn_in=1, multiview="per_sensor", freeze=True)
+    capfd.readouterr()
+    for step in range(2):
+        for view in range(6):
+            render(scene, {}, spp=1, seed=10 * step + view, sensor=view, sampler=r)
+    assert r.integrator.last_pass_frozen
+    assert "has been recorded" not in capfd.readouterr().err

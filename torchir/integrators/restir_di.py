@@ -407,7 +407,10 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self._frozen_pass = None  # recorded against an acceleration structure that is gone
         if not steady:
             return False
-        self._frozen_pass, self._geometry_frozen = dr.freeze(self._pass), now
+        # one recording per sensor and pass kind (fresh RIS, reuse): Dr.Jit's default warning
+        # after 10 recordings fired for every scene with more than 4 sensors
+        recordings = 4 * len(scene.sensors()) + 8
+        self._frozen_pass, self._geometry_frozen = dr.freeze(self._pass, warn_after=recordings), now
         return True
 
     def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, buckets, timings):
