@@ -215,10 +215,11 @@ def test_bounds_hold_after_every_step(tmp_path):
         assert float(value.min()) >= 0.0 and float(value.max()) <= 1.0
 
 
-def _multiview_run(tmp_path: Path, *extra: str, paths_per_step: int = 2 * 8 * 8 * (2 + 2)) -> dict[str, torch.Tensor]:
+def _two_view_fit(tmp_path: Path, config: str, scene_options: str, *extra: str) -> None:
+    """``torchir fit`` of ``config`` on 2 views of 8x8 (2 SGD steps, both views a step) in ``tmp_path``."""
     args = [
-        sys.executable, "-m", "torchir", "fit", "--config", str(ROOT / "configs" / "multiview.yaml"),
-        "--model.resolution", "8", "--model.scene_options", "{views: 2, texture: 4}", "--model.spp", "2",
+        sys.executable, "-m", "torchir", "fit", "--config", str(ROOT / "configs" / config),
+        "--model.resolution", "8", "--model.scene_options", scene_options, "--model.spp", "2",
         "--model.optimizer", "sgd", "--model.lr", "5.0", "--data.views_per_step", "2", "--data.target_spp", "8",
         "--trainer.max_steps", "2", "--trainer.enable_progress_bar", "false", "--images.exr", "false",
         "--trainer.logger.init_args.save_dir", str(tmp_path), *extra,
@@ -227,6 +228,10 @@ def _multiview_run(tmp_path: Path, *extra: str, paths_per_step: int = 2 * 8 * 8 
     result = subprocess.run(args, capture_output=True, text=True, timeout=600, cwd=tmp_path,
                             env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert result.returncode == 0, result.stderr[-3000:]
+
+
+def _multiview_run(tmp_path: Path, *extra: str, paths_per_step: int = 2 * 8 * 8 * (2 + 2)) -> dict[str, torch.Tensor]:
+    _two_view_fit(tmp_path, "multiview.yaml", "{views: 2, texture: 4}", *extra)
     rows = list(csv.DictReader(open(_run_dir(tmp_path, "multiview") / "metrics.csv")))
     paths = {float(r["paths_per_step"]) for r in rows if r.get("paths_per_step")}
     assert paths == {paths_per_step}  # summed over processes: 2 views in all, not 2 per process
@@ -262,18 +267,9 @@ def test_ddp_pixel_sampling_shares_budget_and_stage1(tmp_path):
 
 
 def _restir_views_run(tmp_path: Path, multiview: str, *extra: str) -> dict[str, torch.Tensor]:
-    args = [
-        sys.executable, "-m", "torchir", "fit", "--config", str(ROOT / "configs" / "restir.yaml"),
-        "--model.resolution", "8", "--model.scene_options", "{views: 2, texture: 4, dim_lights: 1, hidden_lights: 1}",
-        "--model.spp", "2", "--model.sampler", f"{{type: restir, candidates: 4, burn_in: 2, multiview: {multiview}}}",
-        "--model.optimizer", "sgd", "--model.lr", "5.0", "--data.views_per_step", "2", "--data.target_spp", "8",
-        "--trainer.max_steps", "2", "--trainer.enable_progress_bar", "false", "--images.exr", "false",
-        "--trainer.logger.init_args.save_dir", str(tmp_path), *extra,
-    ]
-    tmp_path.mkdir(parents=True, exist_ok=True)
-    result = subprocess.run(args, capture_output=True, text=True, timeout=600, cwd=tmp_path,
-                            env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert result.returncode == 0, result.stderr[-3000:]
+    sampler = f"{{type: restir, candidates: 4, burn_in: 2, multiview: {multiview}}}"
+    _two_view_fit(tmp_path, "restir.yaml", "{views: 2, texture: 4, dim_lights: 1, hidden_lights: 1}",
+                  "--model.sampler", sampler, *extra)
     return _latents(_run_dir(tmp_path, "restir") / "checkpoints" / "last.ckpt")
 
 
