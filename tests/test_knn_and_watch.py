@@ -231,21 +231,20 @@ def test_screen_chains_search_only_their_own_sample_index(exclude_self):
     valid = np.random.default_rng(8).random(n) < 0.8
     in_window = _window_rule(np.full(n, 2))
     same_chain = lambda q, j: in_window(q, j) and q % SPP == j % SPP  # noqa: E731
-    got = knn_screen(_pts(P), mi.Bool(valid), _pts(Q), ScreenLayout(W, H, SPP, 2, chains=True), 3, 10.0, exclude_self)
-    check(got, brute(P, Q, 3, 10.0, exclude_self, valid, allowed=same_chain))
+    want = brute(P, Q, 3, 10.0, exclude_self, valid, allowed=same_chain)
+    check(knn_screen(_pts(P), mi.Bool(valid), _pts(Q), ScreenLayout(W, H, SPP, 2, chains=True), 3, 10.0, exclude_self), want)
     every = brute(P, Q, 3, 10.0, exclude_self, valid, allowed=in_window)
-    assert not np.array_equal(every[0], brute(P, Q, 3, 10.0, exclude_self, valid, allowed=same_chain)[0])
-    one = np.arange(W * H)  # one sample per pixel: chains change nothing
-    P1 = P[one * SPP]
-    layout = ScreenLayout(W, H, 1, 2, chains=True)
-    check(knn_screen(_pts(P1), mi.Bool(valid[one * SPP]), _pts(P1), layout, 3, 10.0),
-          knn_screen_reference := brute(P1, P1, 3, 10.0, False, valid[one * SPP],
-                                        allowed=lambda q, j: abs(q % W - j % W) <= 2 and abs(q // W - j // W) <= 2))
-    assert knn_screen_reference[1].any()
+    assert not np.array_equal(every[0], want[0])
+    first = np.arange(W * H) * SPP  # one sample per pixel: chains change nothing
+    P1, valid1 = P[first], valid[first]
+    want1 = brute(P1, P1, 3, 10.0, False, valid1, allowed=lambda q, j: abs(q % W - j % W) <= 2 and abs(q // W - j // W) <= 2)
+    check(knn_screen(_pts(P1), mi.Bool(valid1), _pts(P1), ScreenLayout(W, H, 1, 2, chains=True), 3, 10.0), want1)
+    assert want1[1].any()
 
 
 def test_neighbour_search_keeps_chains_on_the_screen_search():
     layout = ScreenLayout(W, H, SPP, 2, chains=True)
+    assert layout.searches_chains and not ScreenLayout(W, H, 1, 2, chains=True).searches_chains
     assert NeighbourSearch().candidates(layout) == ("screen",)
     assert NeighbourSearch().candidates(ScreenLayout(W, H, 1, 2, chains=True))[-1] == "screen"
     assert len(NeighbourSearch().candidates(ScreenLayout(W, H, 1, 2, chains=True))) > 1

@@ -188,6 +188,11 @@ class ScreenLayout:
     window: int = 2  # half-width in pixels of the searched square
     chains: bool = False
 
+    @property
+    def searches_chains(self) -> bool:
+        """Whether a query searches only its own chain (``chains`` with several samples a pixel)."""
+        return self.chains and self.spp > 1
+
 
 def _insert_top_k(bd: list, bi: list, accept, dc, ic) -> None:
     """Insert ``(dc, ic)`` where ``accept`` into the per-lane sorted top-k ``(bd, bi)``,
@@ -237,7 +242,7 @@ def knn_screen(points: mi.Point3f, valid: mi.Bool, queries: mi.Point3f, layout: 
     else:
         win_q = dr.minimum(mi.UInt32(windows), win)
     side_q = 2 * win_q + 1
-    chains = layout.chains and spp > 1
+    chains = layout.searches_chains
     per_pixel = 1 if chains else spp  # samples searched in each pixel of the window
     count_q = side_q * side_q * per_pixel
     pix = lane // spp
@@ -354,7 +359,7 @@ class NeighbourSearch:
         self.last: str | None = None  # the back-end of the last call
 
     def candidates(self, layout: ScreenLayout | None) -> tuple[str, ...]:
-        if layout is not None and layout.chains and layout.spp > 1:
+        if layout is not None and layout.searches_chains:
             return ("screen",)  # only it searches within a chain
         out = ("kdtree", "grid") if _default_backend() == "kdtree" else ("grid",)
         return out + (("screen",) if layout is not None else ())

@@ -419,12 +419,11 @@ class PixelSampler:
         probed = {k: v for k, v in params.items() if v.is_floating_point()}
         from ..functions.probe import probe_pixels  # Dr.Jit side, loaded on first use
 
-        mine = [v for i, v in enumerate(views) if i % self.world == self.rank]
         for i, v in enumerate(views):
             # every process draws every view's tangents and seed: the shared generator stays in step
             tangents = {k: _rademacher(val, self.generator) for k, val in probed.items()} if p2 is not None and probed else None
             seed = int(torch.randint(0, 2**32 - 1, (1,), generator=self.generator))
-            if v not in mine:
+            if i % self.world != self.rank:  # another process probes this view
                 continue
             radiance, derivative = probe_pixels(
                 self.scene, params, grids, passes=self.stage1_spp, seed=seed, sensor=v, tangents=tangents, step=self.fd_step
@@ -439,7 +438,8 @@ class PixelSampler:
         self.update_from_maps(p1, p2)
         # only a refresh that finished counts: one that raised stays due
         self._signature, self.last_update, self.refreshes = signature, step, self.refreshes + 1
-        paths = len(mine) * self.stage1_spp * sum(h * w for h, w in grids) * (2 if p2 is not None and probed else 1)
+        probed_views = len(views[self.rank :: self.world])
+        paths = probed_views * self.stage1_spp * sum(h * w for h, w in grids) * (2 if p2 is not None and probed else 1)
         self._stats.update(stage1_seconds=time.perf_counter() - started, stage1_paths=float(paths))
 
     def _check_targets(self, targets, views: list[int]) -> list[torch.Tensor]:
