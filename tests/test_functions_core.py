@@ -488,7 +488,7 @@ def test_recordings_count_the_traces(monkeypatch, strict_warnings):
 
 def test_recordings_are_bounded_per_pass(strict_warnings):
     scene = torchir.Scene.from_dict(wall_dict())
-    limit = _passes.recording_limit(scene.sensor_count)
+    limit = torchir.backend.frozen_recordings(scene.sensor_count)
     assert limit == 10  # 8 + 2 per sensor, one sensor
     with torch.no_grad():
         for spp in range(1, limit + 3):  # more configurations than the bound

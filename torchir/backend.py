@@ -116,6 +116,19 @@ def frozen_renders() -> bool:
     return _freeze
 
 
+_RECORDINGS_PER_PASS = 8  # cached recordings of a frozen pass (one per sensor/spp configuration) ...
+_RECORDINGS_PER_SENSOR = 2  # ... plus this many per sensor: each view is its own recording
+
+
+def frozen_recordings(sensor_count: int) -> int:
+    """Recordings a frozen pass of a scene with ``sensor_count`` sensors keeps (its LRU bound)
+    and may make before Dr.Jit's "recorded N times" warning is due: a multi-view run renders
+    every sensor each epoch, and an LRU smaller than the sensor count re-records every call
+    (measured: 16 views of 128², ~1.6 s a step, every render re-traced); Dr.Jit's own threshold
+    (10) printed its warning every step for 8 sensors, whose recordings are all expected."""
+    return _RECORDINGS_PER_PASS + _RECORDINGS_PER_SENSOR * max(1, sensor_count)
+
+
 def device() -> str:
     """The torch device whose tensors the active variant exchanges without copies."""
     return "cuda" if variant().startswith("cuda") else "cpu"

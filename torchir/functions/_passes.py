@@ -24,17 +24,6 @@ import mitsuba as mi
 from .. import backend
 from ..scene import Scene
 
-_RECORDINGS_PER_PASS = 8  # LRU bound on cached recordings (one per sensor/spp configuration) ...
-_RECORDINGS_PER_SENSOR = 2  # ... plus this many per sensor: each view is its own recording
-
-
-def recording_limit(sensor_count: int) -> int:
-    """Recordings a frozen pass keeps: a multi-view run renders every sensor each epoch, and an
-    LRU smaller than the sensor count re-records every call (measured: 16 views of 128², ~1.6 s
-    a step, every render re-traced)."""
-    return _RECORDINGS_PER_PASS + _RECORDINGS_PER_SENSOR * max(1, sensor_count)
-
-
 def _primal(mi_scene: mi.Scene, sensor: int, seed: Any, spp: int) -> mi.TensorXf:
     sensor_obj = mi_scene.sensors()[sensor]
     image = mi_scene.integrator().render(mi_scene, sensor_obj, seed=seed, spp=spp, develop=True, evaluate=False)
@@ -62,9 +51,9 @@ class RenderPasses:
     def __init__(self, scene: Scene) -> None:
         self.scene = weakref.proxy(scene)
         self.frozen = backend.frozen_renders() and _freezable(scene.integrator)
-        limit = recording_limit(scene.sensor_count)
-        self._primal = dr.freeze(_primal, limit=limit)
-        self._adjoint = dr.freeze(_adjoint, limit=limit)
+        limit = backend.frozen_recordings(scene.sensor_count)
+        self._primal = dr.freeze(_primal, limit=limit, warn_after=limit)
+        self._adjoint = dr.freeze(_adjoint, limit=limit, warn_after=limit)
 
     @property
     def recordings(self) -> int:

@@ -18,10 +18,11 @@ import drjit as dr
 import mitsuba as mi
 import torch
 
+from .. import backend
 from ..scene import Scene
 from . import _args
 from ._bound_op import BoundRenderOp
-from ._passes import _clear_grads, passes, recording_limit
+from ._passes import _clear_grads, passes
 
 __all__ = ["render_pixels"]
 
@@ -143,10 +144,10 @@ class _PixelPasses:
         self.scene = weakref.proxy(scene)
         self.full_passes = passes(scene)  # whose rules say which bindings replay correctly
         self.seen: dict[tuple, int] = {}
-        self.limit = limit = recording_limit(scene.sensor_count)
-        self._primal = dr.freeze(_primal_pass, limit=limit)
-        self._adjoint = dr.freeze(_adjoint_pass, limit=limit)
-        self._one_path = dr.freeze(_one_path_pass, limit=limit)
+        self.limit = limit = backend.frozen_recordings(scene.sensor_count)
+        self._primal = dr.freeze(_primal_pass, limit=limit, warn_after=limit)
+        self._adjoint = dr.freeze(_adjoint_pass, limit=limit, warn_after=limit)
+        self._one_path = dr.freeze(_one_path_pass, limit=limit, warn_after=limit)
 
     def _frozen(self, key: tuple) -> bool:
         if key not in self.seen and len(self.seen) >= 4 * self.limit:  # forget counts used once

@@ -109,6 +109,7 @@ import mitsuba as mi
 import numpy as np
 from mitsuba.python.ad.integrators.common import RBIntegrator
 
+from .. import backend
 from . import _knn
 from ._light import FORWARD_FLAGS, LightSample, Reservoirs, eval_target, rebuild_interaction, sample_candidate
 from ._scene_watch import EmitterWatch, GeometryWatch, as_tuples
@@ -407,9 +408,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self._frozen_pass = None  # recorded against an acceleration structure that is gone
         if not steady:
             return False
-        # one recording per sensor and pass kind (fresh RIS, reuse): Dr.Jit's default warning
-        # after 10 recordings fired for every scene with more than 4 sensors
-        recordings = 4 * len(scene.sensors()) + 8
+        # one recording per sensor and pass kind (fresh RIS, reuse) is expected
+        recordings = backend.frozen_recordings(len(scene.sensors()))
         self._frozen_pass, self._geometry_frozen = dr.freeze(self._pass, warn_after=recordings), now
         return True
 
