@@ -53,7 +53,9 @@ def test_denoised_render_backward_with_gbuffers(painting):
 
     before, between = step("before"), step("between")
     assert torch.isfinite(before).all() and before.abs().sum() > 0
-    assert torch.equal(before, between)
+    # equal to float32 summation order (Dr.Jit accumulates gradients with parallel atomics:
+    # measured 2e-8 of the largest entry in 1 of 4 runs); a disturbed replay is off by 50-100%
+    torch.testing.assert_close(between, before, rtol=0, atol=1e-5 * float(before.abs().max()))
 
 
 def test_denoised_adjoint_variance_and_bias(painting):
