@@ -24,7 +24,9 @@ Methods: ``l2`` (pixel-wise; B1 on raw HDR), ``gp`` (Gaussian pyramid, MSE per l
 ``loi`` (the default: large-alpha terms on cells of 0.15 alpha), ``loi_exact`` (every pixel)
 and ``loi_cells`` (LOI with ``cell_fraction=0.5``: large-alpha terms on cell means, faster).
 The cost table also gives each ``cell_fraction`` setting's loss and gradient error against the
-exact LOI, and ``ndtr_floor``: the point CDFs alone, a lower bound for any implementation.
+exact LOI, ``ndtr_floor``: the point CDFs alone, and, where the native banded kernel is
+available (a C compiler), ``loi_dense_products`` / ``loi_exact_dense_products``: the same
+losses with every blur a dense matrix product, as on a machine without one.
 B1 applies Reinhard ``x/(1+x)`` to both images for every method except ``l2``; B2/B3 use the
 paper's section 4.1 scales x 0.5 (64 px instead of 128 px images).
 
@@ -51,6 +53,7 @@ import torch
 
 import torchir
 from torchir.modules import GaussianPyramidLoss, LOILoss, MultiScaleL2Loss
+from torchir.modules._banded import native_available, native_products
 
 LossFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 METHODS = ("l2", "gp", "ms_l2", "sigma_w1", "loi", "loi_exact", "loi_cells")
@@ -260,7 +263,16 @@ def bench_cost(args) -> dict[str, Any]:
         for support in supports:
             torch.erfc(support)
 
+    def dense_products(job):
+        def run(i):
+            with native_products(False):
+                job(i)
+        return run
+
     jobs = {"render": render_step, **{k: loss_step(v) for k, v in losses.items()}, "ndtr_floor": ndtr_floor}
+    if native_available():  # the same losses with every blur a dense matrix product (no compiler)
+        jobs["loi_dense_products"] = dense_products(loss_step(losses["loi"]))
+        jobs["loi_exact_dense_products"] = dense_products(loss_step(losses["loi_exact"]))
     for job in jobs.values():  # warm-up (kernel compilation, target caches)
         job(0)
     times: dict[str, list[float]] = {k: [] for k in jobs}
