@@ -148,3 +148,23 @@ def render_pixels_passes_frozen(scene) -> bool:
 
     passes = _pixel_passes(scene)
     return passes._primal.n_recordings >= 1 and passes._adjoint.n_recordings >= 1
+
+
+def test_each_view_samples_its_own_shutter_interval():
+    """One wavefront over several views: a lane's ray time lies in *its* sensor's shutter
+    interval (it took the first sensor's for every view)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from torchir.functions.render_pixels import _pixel_rays, _seeded_sampler
+
+    def sensor(open_, close):
+        return mi.load_dict({"type": "perspective", "shutter_open": open_, "shutter_close": close,
+                             "film": {"type": "hdrfilm", "width": 4, "height": 4}})
+
+    sensors = [sensor(0.0, 0.0), sensor(2.0, 3.0), sensor(5.0, 5.0)]
+    index = mi.UInt32(dr.arange(mi.UInt32, 3 * 16))
+    ray, _ = _pixel_rays(sensors, index, _seeded_sampler(0, 3 * 16))
+    t = torch.tensor(ray.time.numpy()).view(3, 16)
+    assert bool((t[0] == 0).all()) and bool((t[2] == 5).all())
+    assert bool(((t[1] >= 2) & (t[1] <= 3)).all()) and float(t[1].std()) > 0.1

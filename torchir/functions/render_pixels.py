@@ -44,13 +44,15 @@ def _film_rays(sensors: Sequence[mi.Sensor], x: mi.Float, y: mi.Float, width, he
     pos = mi.Vector2f(x, y) + sampler.next_2d()
     pos_01 = mi.Vector2f(pos.x / width, pos.y / height)
     aperture = sampler.next_2d() if any(s.needs_aperture_sample() for s in sensors) else mi.Vector2f(0.0)
-    time = first.shutter_open()
-    if first.shutter_open_time() > 0:
-        time += sampler.next_1d() * first.shutter_open_time()
+    u_time = sampler.next_1d() if any(s.shutter_open_time() > 0 for s in sensors) else mi.Float(0.0)
+
+    def time(sensor: mi.Sensor) -> mi.Float:  # within each sensor's own shutter interval
+        return sensor.shutter_open() + u_time * sensor.shutter_open_time()
+
     with dr.resume_grad():
-        ray, weight = first.sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
+        ray, weight = first.sample_ray_differential(time=time(first), sample1=0.0, sample2=pos_01, sample3=aperture)
         for k, sensor in enumerate(sensors[1:], start=1):
-            ray_k, weight_k = sensor.sample_ray_differential(time=time, sample1=0.0, sample2=pos_01, sample3=aperture)
+            ray_k, weight_k = sensor.sample_ray_differential(time=time(sensor), sample1=0.0, sample2=pos_01, sample3=aperture)
             mine = view == k
             ray, weight = dr.select(mine, ray_k, ray), dr.select(mine, weight_k, weight)
         return ray, weight
