@@ -525,6 +525,8 @@ class Scene:
         return {**out, **targets}
 
     def _warn_discontinuous(self, name: str) -> None:
+        if name.endswith(".vertex_positions"):
+            self._warn_unwelded(name)
         integrator = type(self.integrator).__name__
         if "Projective" not in integrator:
             self.warn_once(
@@ -532,6 +534,20 @@ class Scene:
                 f"{name!r} moves visibility edges, but the scene's integrator ({integrator}) "
                 f"differentiates only the interior term: gradients miss the boundary term. Use a "
                 f"projective integrator (prb_projective, direct_projective) for shape/pose parameters.",
+            )
+
+    def _warn_unwelded(self, name: str) -> None:
+        """Projective boundary terms need faces that share their edges' vertices."""
+        points = self.get(name).reshape(-1, 3)
+        repeats = points.shape[0] - torch.unique(points, dim=0).shape[0]
+        if repeats:
+            self.warn_once(
+                f"{name}/unwelded",
+                f"{name!r}: {repeats} of the mesh's {points.shape[0]} vertices repeat another vertex's position "
+                f"(faces that do not share vertices, as in Mitsuba's 'cube', or uv seams). Projective boundary "
+                f"terms take such edges for open borders and count them from both faces (measured: 2.0x the "
+                f"finite-difference gradient of a 'cube' occluder). Weld the mesh (one vertex per position) for "
+                f"correct shape gradients.",
             )
 
     def warn_once(self, key: str, message: str) -> None:

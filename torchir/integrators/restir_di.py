@@ -624,9 +624,12 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.timings["backward"] = _tic() - t0
 
     def boundary_integrator(self) -> mi.Integrator:
-        """Mitsuba's ``direct_projective`` restricted to its boundary terms (``sppc=0``)."""
+        """Mitsuba's ``direct_projective`` restricted to its boundary terms (``sppc=0``), without
+        guiding: on ``occluded_lights`` (64², the blocker's shadow) the default octree guiding
+        took 5.7 s a step against 0.06 s, for the same error x time (relative variance x seconds
+        0.48 against 0.42) and the same mean."""
         if getattr(self, "_boundary", None) is None:
-            self._boundary = mi.load_dict({"type": "direct_projective", "sppc": 0})
+            self._boundary = mi.load_dict({"type": "direct_projective", "sppc": 0, "guiding": "none"})
         return self._boundary
 
     # ------------------------------------------------------------------ state

@@ -4,8 +4,9 @@ For: ReSTIR (paper 004, Figs. 9-10 "Tree"): an object seen only through its cast
 by one small area light and one large area light that is mostly hidden. The camera looks
 straight down at a diffuse floor with a ``texture x texture`` albedo. A small bright square
 light (``small_light``) low on the left casts the sharp shadow of ``blocker``, a thin box
-mesh (Mitsuba ``cube``, so ``blocker.vertex_positions`` exists; rotate it with
-:func:`torchir.derived.rigid_transform`) hanging outside the camera's view, across the floor.
+mesh (8 shared vertices, so ``blocker.vertex_positions`` exists and the projective boundary
+terms see a closed mesh; rotate it with :func:`torchir.derived.rigid_transform`) hanging outside
+the camera's view, across the floor.
 A large ceiling panel (``large_light``, 4 x 4) sits above an occluding plate (``shade``) with a
 single ``hole`` x ``hole`` opening: each floor point sees about 2 % of the panel, so almost
 every light sample towards it is occluded, though it gives the floor about half its light.
@@ -20,7 +21,7 @@ from typing import Any
 
 import mitsuba as mi
 
-from ._common import bitmap, painting_texture, perspective, resolution_hw
+from ._common import bitmap, painting_texture, perspective, resolution_hw, welded_box
 
 DESCRIPTION = "blocker shadow on a textured floor, small light + mostly hidden large light; direct illumination (prb, max_depth 2); recover the floor texture (or the blocker's rotation)"
 PARAMETERS = ("floor.bsdf.reflectance.data",)
@@ -62,11 +63,8 @@ def build(
             "to_world": T().scale([1.25, 1.25, 1.0]),
             "bsdf": {"type": "diffuse", "reflectance": bitmap(painting_texture(texture))},
         },
-        "blocker": {
-            "type": "cube",
-            "to_world": T().translate(list(BLOCKER_CENTER)).rotate([0, 0, 1], angle).scale([0.38, 0.06, 0.26]),
-            "bsdf": dark,
-        },
+        # a welded box (shared vertices): Mitsuba's cube doubled its projective boundary gradient
+        "blocker": welded_box("blocker", T().translate(list(BLOCKER_CENTER)).rotate([0, 0, 1], angle).scale([0.38, 0.06, 0.26]), dark),
         # small light: 0.16 x 0.16, low on the left, facing the floor's centre
         "small_light": {
             "type": "rectangle",
