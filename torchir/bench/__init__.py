@@ -22,6 +22,7 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "loi": "torchir.bench.loi",
     "restir": "torchir.bench.restir",
     "restir_views": "torchir.bench.restir_views",
+    "restir_shadow": "torchir.bench.restir_shadow",
     "combined": "torchir.bench.combined",
     "stepcost": "torchir.bench.stepcost",
     "scaleup": "torchir.bench.scaleup",
