@@ -12,8 +12,9 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "overhead": "torchir.bench.overhead",
@@ -76,3 +77,29 @@ def run_suites(suites: Sequence[str], quick: bool, out: Path) -> list[dict]:
     report = write_report(out, runs)
     print(f"[torchir bench] report: {report} (and {report.with_suffix('.html')})")
     return runs
+
+
+def write_outputs(out: Path, summary: str, results: dict, draw: Callable[[Any], None], picture: str,
+                  xlabel: str, ylabel: str, log_y: bool = False) -> None:
+    """Print a suite's Markdown ``summary`` and write ``summary.md``, ``results.json`` and one
+    line plot (``picture``, drawn by ``draw(ax)``) into ``out``."""
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    print(summary)
+    (out / "summary.md").write_text(summary)
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    fig, ax = plt.subplots(figsize=(7, 4))
+    draw(ax)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if log_y:
+        ax.set_yscale("log")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / picture, dpi=110)
+    plt.close(fig)

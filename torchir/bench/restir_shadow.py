@@ -27,7 +27,6 @@ wall time).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -37,6 +36,7 @@ import torchir  # noqa: I001  (before torch)
 
 import torch
 
+from torchir.bench import write_outputs
 from torchir.derived import rigid_transform
 from torchir.functions import render
 from torchir.samplers import ReSTIRSampler
@@ -107,23 +107,14 @@ def summarize(results: dict[str, list[dict[str, Any]]], tolerance: float) -> str
     return "\n".join(lines) + "\n"
 
 
-def plot(results: dict[str, list[dict[str, Any]]], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for i, (name, runs) in enumerate(results.items()):
-        for j, r in enumerate(runs):
-            ax.plot(r["clock"], r["angles"], color=f"C{i}", lw=0.9, label=name if j == 0 else None)
-    ax.axhline(0.0, color="k", lw=0.5)
-    ax.set_xlabel("wall time (s; ReSTIR's burn-in included)")
-    ax.set_ylabel("blocker rotation (degrees; truth 0)")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def draw(results: dict[str, list[dict[str, Any]]]):
+    """The angle of every run against its wall time, one colour per method."""
+    def on(ax) -> None:
+        for i, (name, runs) in enumerate(results.items()):
+            for j, r in enumerate(runs):
+                ax.plot(r["clock"], r["angles"], color=f"C{i}", lw=0.9, label=name if j == 0 else None)
+        ax.axhline(0.0, color="k", lw=0.5)
+    return on
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -150,10 +141,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             print(f"{method} from {start:+.0f}: final {run['final']:.2f} in {run['steps']} steps, {run['seconds']:.1f} s", flush=True)
     summary = (f"# Pose from a shadow (occluded_lights), {a.resolution}², Adam lr {a.lr}, equal time per start\n\n"
                + summarize(results, a.tolerance))
-    print(summary)
-    (out / "summary.md").write_text(summary)
-    (out / "results.json").write_text(json.dumps({"args": vars(a), "results": results}, indent=1))
-    plot(results, out / "shadow.png")
+    write_outputs(out, summary, {"args": vars(a), "results": results}, draw(results), "shadow.png",
+                  "wall time (s; ReSTIR's burn-in included)", "blocker rotation (degrees; truth 0)")
     return results
 
 

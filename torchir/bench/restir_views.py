@@ -29,13 +29,13 @@ of each step against the cumulative wall time).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torchir  # noqa: I001  (before torch)
+from torchir.bench import write_outputs
 
 import numpy as np
 import torch
@@ -124,22 +124,12 @@ def summarize(results: dict[str, dict[str, Any]], burn_ins: list[int]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(results: dict[str, dict[str, Any]], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, r in results.items():
-        ax.plot(r["clock"], r["errors"], ".-", ms=3, lw=0.8, label=name)
-    ax.set_xlabel("wall time (s, burn-ins included)")
-    ax.set_ylabel("relative gradient error of the step")
-    ax.set_yscale("log")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def draw(results: dict[str, dict[str, Any]]):
+    """Each step's gradient error against the cumulative wall time, per method."""
+    def on(ax) -> None:
+        for name, r in results.items():
+            ax.plot(r["clock"], r["errors"], ".-", ms=3, lw=0.8, label=name)
+    return on
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -159,10 +149,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         results[name] = run_method(scene, texture, weights, refs, options, a)
     summary = (f"# ReSTIR across views: {a.views} views, {a.resolution}², {a.steps} steps, {a.spp} spp, "
                f"{a.candidates} candidates\n\n" + summarize(results, a.burn_in))
-    print(summary)
-    (out / "summary.md").write_text(summary)
-    (out / "results.json").write_text(json.dumps({"args": vars(a), "results": results}, indent=1))
-    plot(results, out / "views.png")
+    write_outputs(out, summary, {"args": vars(a), "results": results}, draw(results), "views.png",
+                  "wall time (s, burn-ins included)", "relative gradient error of the step", log_y=True)
     return results
 
 
