@@ -223,6 +223,7 @@ class Scene:
         self._overridden: set[str] = set()
         self._owner: object | None = None  # the render op whose grad-enabled values are bound
         self._warned: set[str] = set()
+        self._weld_checked: set[str] = set()  # meshes whose vertex sharing was checked (topology is fixed)
         self.derived: dict[str, DerivedParameter] = {}  # reparameterisations declared by the scene
         self.is_builtin = False  # made by Scene.builtin (not from a user's file or dict)
 
@@ -537,7 +538,11 @@ class Scene:
             )
 
     def _warn_unwelded(self, name: str) -> None:
-        """Projective boundary terms need faces that share their edges' vertices."""
+        """Projective boundary terms need faces that share their edges' vertices. Checked once per
+        mesh: optimising positions does not change which vertices a face uses."""
+        if name in self._weld_checked:
+            return
+        self._weld_checked.add(name)
         points = self.get(name).reshape(-1, 3)
         repeats = points.shape[0] - torch.unique(points, dim=0).shape[0]
         if repeats:

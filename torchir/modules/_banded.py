@@ -266,8 +266,10 @@ def _apply_t(x: torch.Tensor, band: _Band, lib: ctypes.CDLL) -> torch.Tensor:
 def _native(x: torch.Tensor, mh: torch.Tensor, mw: torch.Tensor, transposed: bool) -> torch.Tensor | None:
     if not _enabled or x.dtype != torch.float32 or x.device.type != "cpu" or x.numel() == 0:
         return None
+    if (lib := _load()) is None:  # no compiler: no band forms either
+        return None
     bh, bw = (_forms(mh)[transposed], _forms(mw)[transposed])
-    if bh is None or bw is None or (lib := _load()) is None:
+    if bh is None or bw is None:
         return None
     x = x.contiguous()
     return _apply_t(_apply_t(x, bh, lib), bw, lib)

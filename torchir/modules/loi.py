@@ -377,7 +377,7 @@ def _term_operators(d: torch.Tensor, pw: torch.Tensor, terms: Sequence[_Term], t
 
 def _aperture(d: torch.Tensor, ops: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
     """``A_alpha * D`` on the term's cells, ``(.., H', W')``, from ``D`` on the support
-    (banded and native where it can be: not differentiable, used inside ``_SigmaTerm``)."""
+    (banded and native where it can be)."""
     return d if ops is None else sandwich(ops[0], d, ops[1])
 
 
