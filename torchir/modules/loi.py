@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from . import _loi_native
 from ._banded import sandwich, sandwich_adjoint
 from ._blur import MIN_SCALE, blur, cell_means, gaussian_matrix
 from ._warnings import user_stacklevel
@@ -42,10 +43,15 @@ _LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709, linear RGB
 _SMALL_BETA = 1.0 / 128  # below: many bins, gradient only within 3 beta of each value (spec 5.5)
 _OUT_OF_RANGE_FRACTION = 0.01  # warn when more pixels than this lie beyond k_hi + 3 beta
 # The default (exact=False): terms with alpha >= 1 / FAST_CELL_FRACTION px are evaluated on
-# cells of floor(FAST_CELL_FRACTION * alpha) px. Measured on glossy_highlight at 256²
-# (scripts/bench_loi.py --only cost, largest over 3 renders): loss within 0.013 %, image
-# gradient within 0.56 % of exact, at 0.49x the exact loss's time (0.64x with dense products).
+# cells of floor(FAST_CELL_FRACTION * alpha) px, their input averaged over the same cells first.
+# Measured on glossy_highlight at 256² (scripts/bench_loi.py --only cost, largest over 3
+# renders): loss within 0.037 %, image gradient within 0.66 % of exact; 0.25 gives 1.5 %.
 FAST_CELL_FRACTION = 0.15
+# A cell term's input is averaged over cells of at most POOL_FRACTION * alpha px before its blur.
+# Coarser output cells keep this input grid: averaged over the output's own cells, cell_fraction
+# 0.5 measured 3.4 % gradient error on glossy_highlight (2.6 % with this cap) and a displaced
+# disk's gradient moved by 10 % (tests/test_loi.py, within 5 % with it).
+POOL_FRACTION = 0.15
 
 
 _SQRT_HALF = math.sqrt(0.5)
@@ -290,7 +296,10 @@ def _edges(cfg: _Config, dtype: torch.dtype, device: torch.device) -> torch.Tens
 
 
 def _point_cdf(j_sigma: torch.Tensor, edges: torch.Tensor, beta: float) -> torch.Tensor:
-    """E4/E6 before the aperture: ``Phi((e_j - J_sigma(x)) / beta)``, ``(B, C, K, H, W)``."""
+    """E4/E6 before the aperture: ``Phi((e_j - J_sigma(x)) / beta)``, ``(B, C, K, H, W)``; by the
+    fused kernel's ``Phi`` where that kernel will take the difference (see ``_loi_native``)."""
+    if _loi_native.usable(j_sigma) and not (j_sigma.requires_grad and torch.is_grad_enabled()):
+        return _loi_native.point_cdf(j_sigma, edges, beta)
     return _phi_cdf((edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)) / beta)
 
 
@@ -316,12 +325,14 @@ class _Term:
     nothing is left beyond ``r_sigma + r_alpha``; the renormalised blur on a canvas cropped to
     ``r_sigma + 2 r_alpha + 1`` therefore gives the same values (exact, only cheaper).
     ``cell``: the term's ``|A_alpha * D|`` is evaluated on the means of ``cell x cell`` blocks
-    (1 = every pixel, exact; see ``cell_fraction``)."""
+    (1 = every pixel, exact; see ``cell_fraction``). ``pool``: ``D`` is first averaged over
+    ``pool x pool`` blocks (at most ``POOL_FRACTION * alpha``; 1 = not at all)."""
 
     alpha: float
     weight: float
     trim: int
     cell: int
+    pool: int = 1  # the input's averaging cells (1: none)
 
 
 def _reach(scale: float, truncate: float) -> int:
@@ -336,9 +347,10 @@ def _support_trim(sigma: float, margin: int, cfg: _Config) -> int:
 
 def _plan(sigma: float, alphas: Sequence[float], weights: Sequence[float], margin: int, cfg: _Config) -> tuple[_Term, ...]:
     r_s = _reach(sigma, cfg.truncate)
+    cells = [max(1, int(cfg.cell_fraction * a)) for a in alphas]
     return tuple(
-        _Term(a, w, margin - min(margin, r_s + (2 * _reach(a, cfg.truncate) + 1 if a >= MIN_SCALE else 0)), max(1, int(cfg.cell_fraction * a)))
-        for a, w in zip(alphas, weights)
+        _Term(a, w, margin - min(margin, r_s + (2 * _reach(a, cfg.truncate) + 1 if a >= MIN_SCALE else 0)), cell, min(cell, max(1, int(POOL_FRACTION * a))))
+        for a, w, cell in zip(alphas, weights, cells)
     )
 
 
@@ -346,43 +358,64 @@ def _trim(x: torch.Tensor, k: int) -> torch.Tensor:
     return x[..., k : x.shape[-2] - k, k : x.shape[-1] - k] if k else x
 
 
+Stage = tuple[torch.Tensor, torch.Tensor]  # (M_H, M_W): one product M_H @ x @ M_W^T
+Operators = Union[tuple[Stage, ...], None]  # applied in order; None: the identity
+
+
 @lru_cache(maxsize=128)
-def _operator(n: int, alpha: float, cell: int, offset: int, n_support: int, truncate: float, dtype: torch.dtype, device: str) -> torch.Tensor:
-    """``(ceil(n / cell), n_support)``: the aperture blur of an ``n``-sample canvas (per sample,
-    or per-cell means) restricted to the columns of the support ``[offset, offset + n_support)``,
-    outside which its input is 0: the same values as the full blur, at ``n_support / n`` of its cost."""
-    rows = gaussian_matrix(n, alpha, truncate, dtype, device) if cell == 1 else cell_means(n, alpha, cell, truncate, dtype, device)[0]
-    return rows[:, offset : offset + n_support].contiguous()
+def _operator(n: int, alpha: float, cell: int, pool: int, offset: int, n_support: int, truncate: float, dtype: torch.dtype, device: str) -> tuple[torch.Tensor, ...]:
+    """The aperture blur of an ``n``-sample canvas restricted to the columns of the support
+    ``[offset, offset + n_support)``, outside which its input is 0 (the same values as the full
+    blur, at ``n_support / n`` of its cost), as one or two matrices applied in order.
+
+    ``pool == 1``: one matrix, ``(n, n_support)`` per sample, or the per-cell means of the blur
+    ``R (ceil(n / cell), n_support)``. ``pool > 1``: ``R`` factored as a box mean over cells of
+    ``pool`` samples, ``P (n_pool, n_support)``, then ``G = R E`` on those cells (``E`` spreads a
+    cell's mean over its samples): exact where the input is constant within each pool cell, and
+    the wide blur runs on ``pool^2`` times fewer samples (measured on glossy_highlight at 256²:
+    image gradient within 0.66 % of the exact loss's, against 0.56 % for ``R`` itself)."""
+    rows = gaussian_matrix(n, alpha, truncate, torch.float64, "cpu") if cell == 1 else cell_means(n, alpha, cell, truncate, torch.float64, "cpu")[0]
+    rows = rows[:, offset : offset + n_support]
+    if pool == 1:
+        return (rows.to(dtype=dtype, device=device).contiguous(),)
+    members = torch.arange(offset, offset + n_support) // pool
+    members = members - members[0]
+    spread = (members[:, None] == torch.arange(int(members[-1]) + 1)[None, :]).to(torch.float64)  # E (n_support, n_pool)
+    pooled = spread.T / spread.sum(0)[:, None]
+    return tuple(m.to(dtype=dtype, device=device).contiguous() for m in (pooled, rows @ spread))
 
 
-def _operators(t: _Term, canvas: tuple[int, int], support: tuple[int, int], truncate: float, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """The term's row and column operators from the support (``(Hs, Ws)``, centred in the
-    ``canvas``) to its own cells; ``None`` when they are the identity (no aperture, same canvas)."""
+def _operators(t: _Term, canvas: tuple[int, int], support: tuple[int, int], truncate: float, like: torch.Tensor) -> Operators:
+    """The term's stages from the support (``(Hs, Ws)``, centred in the ``canvas``) to its own
+    cells; ``None`` when the aperture is the identity (no aperture, same canvas)."""
     (ch, cw), (sh, sw) = canvas, support
     nh, nw = ch - 2 * t.trim, cw - 2 * t.trim
     if t.alpha < MIN_SCALE and (nh, nw) == (sh, sw):  # (alpha = 0 has 1-pixel cells)
         return None
     dev = str(like.device)
-    return (
-        _operator(nh, t.alpha, t.cell, (nh - sh) // 2, sh, truncate, like.dtype, dev),
-        _operator(nw, t.alpha, t.cell, (nw - sw) // 2, sw, truncate, like.dtype, dev),
-    )
+    rows = _operator(nh, t.alpha, t.cell, t.pool, (nh - sh) // 2, sh, truncate, like.dtype, dev)
+    cols = _operator(nw, t.alpha, t.cell, t.pool, (nw - sw) // 2, sw, truncate, like.dtype, dev)
+    return tuple(zip(rows, cols))
 
 
-def _term_operators(d: torch.Tensor, pw: torch.Tensor, terms: Sequence[_Term], truncate: float) -> list[tuple[torch.Tensor, torch.Tensor] | None]:
+def _term_operators(d: torch.Tensor, pw: torch.Tensor, terms: Sequence[_Term], truncate: float) -> list[Operators]:
     """Each term's operators for ``d`` on the support, ``pw`` on the padded canvas."""
     canvas, support = tuple(pw.shape[-2:]), tuple(d.shape[-2:])
     return [_operators(t, canvas, support, truncate, d) for t in terms]
 
 
-def _aperture(d: torch.Tensor, ops: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
+def _aperture(d: torch.Tensor, ops: Operators) -> torch.Tensor:
     """``A_alpha * D`` on the term's cells, ``(.., H', W')``, from ``D`` on the support
     (banded and native where it can be)."""
-    return d if ops is None else sandwich(ops[0], d, ops[1])
+    for mh, mw in ops or ():
+        d = sandwich(mh, d, mw)
+    return d
 
 
-def _aperture_adjoint(g: torch.Tensor, ops: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
-    return g if ops is None else sandwich_adjoint(ops[0], g, ops[1])
+def _aperture_adjoint(g: torch.Tensor, ops: Operators) -> torch.Tensor:
+    for mh, mw in reversed(ops or ()):
+        g = sandwich_adjoint(mh, g, mw)
+    return g
 
 
 def _term_weights(pw: torch.Tensor, t: _Term, truncate: float) -> torch.Tensor:
@@ -425,8 +458,17 @@ class _SigmaTerm(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, j_sigma, z_target, edges, beta, terms, pw, truncate, low_memory):  # noqa: D102
+        ops = _term_operators(z_target, pw, terms, truncate)
+        fused = _loi_native.sigma_term(
+            j_sigma, z_target, edges, beta, ops, [_term_weights(pw, t, truncate) for t in terms],
+            [t.weight * beta / j_sigma.shape[1] for t in terms], want_grad=ctx.needs_input_grad[0],
+        )
+        ctx.fused = fused is not None
+        if fused is not None:  # the native kernel: the gradient comes with the loss
+            total, grad_j = fused
+            ctx.save_for_backward(grad_j if grad_j is not None else j_sigma.new_zeros(0))
+            return total
         u, d = _SigmaTerm._difference(j_sigma, z_target, edges, beta)
-        ops = _term_operators(d, pw, terms, truncate)
         outs = [_aperture(d, op) for op in ops]
         total = sum(t.weight * _term_value(out, t, beta, pw, truncate) for t, out in zip(terms, outs))
         if low_memory:
@@ -439,6 +481,9 @@ class _SigmaTerm(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):  # noqa: D102
+        if ctx.fused:
+            (grad_j,) = ctx.saved_tensors
+            return grad.view(-1, 1, 1, 1).to(grad_j.dtype) * grad_j, None, None, None, None, None, None, None
         j_sigma, z_target, edges, pw, *stored = ctx.saved_tensors
         beta, terms, truncate = ctx.beta, ctx.terms, ctx.truncate
         if ctx.low_memory:
@@ -575,16 +620,18 @@ def loi_loss(
         truncate: Gaussian kernels are cut at ``truncate`` std-devs (capped at the image size).
         reduction: ``"mean"`` / ``"sum"`` over the batch, or ``"none"`` for ``(B,)``.
         mask: ``(B, 1|C, H, W)`` non-negative per-pixel weights of the W1 terms.
-        low_memory: recompute the big tensors in backward instead of storing them.
+        low_memory: recompute the big tensors in backward instead of storing them (the torch
+            path; the fused kernel, float32 on the CPU, stores none of them anyway).
         cell_fraction: speed for accuracy. Each ``alpha`` term takes ``|A_alpha * D|`` on the
             exact means of ``floor(cell_fraction * alpha)``-pixel cells instead of on every
-            pixel (0 = every pixel, the exact loss; ``None`` = 0.15, or 0 with ``exact``). The
+            pixel (0 = every pixel, the exact loss; ``None`` = 0.15, or 0 with ``exact``), and
+            ``D`` is averaged over cells of at most ``0.15 alpha`` px before the blur. The
             blurred field is smooth at scale ``alpha``, so only cells that straddle one of its
             zero crossings differ; ``scripts/bench_loi.py`` measures speed and loss/gradient error.
         exact: evaluate every term on every pixel (the paper's loss). The default evaluates
             large-``alpha`` terms on cells (``cell_fraction=0.15``: at ``alphas=(1, 5, 15, 45)``
-            the last two on 2 and 6 px cells), measured within 0.013 % of the exact loss and
-            0.56 % of its gradient on 256² renders, in 0.59x the time.
+            the last two on 2 and 6 px cells), measured within 0.037 % of the exact loss and
+            0.66 % of its gradient on 256² renders, in 0.16x the time (fused kernel).
 
     Returns:
         A scalar (``(B,)`` for ``reduction="none"``). Each term is a mean over channels and
@@ -697,7 +744,7 @@ class LOILoss(nn.Module):
     def _target_cdfs(self, target: torch.Tensor, p: _Prepared) -> list[torch.Tensor]:
         if self.cache_size == 0:
             return _target_cdfs(p, self.cfg)
-        key = (tuple(p.target.shape), p.target.dtype, p.target.device, p.margin)
+        key = (tuple(p.target.shape), p.target.dtype, p.target.device, p.margin, _loi_native.usable(p.target))  # (the Phi used)
         for k, (ref, version, ref_key, snapshot, z) in self._cache.items():
             if ref_key != key or snapshot.shape != target.shape:
                 continue
@@ -762,10 +809,11 @@ class LOILoss(nn.Module):
         return torch.diff(cdf, dim=2, prepend=zero, append=torch.ones_like(zero))
 
     def memory_estimate(self, shape: Sequence[int], dtype: torch.dtype = torch.float32) -> int:
-        """Approximate peak bytes of one forward + backward at image ``shape`` ((B,)C,H,W):
-        backward keeps ~(2 + |alphas|) ``(B, C, K, Hp, Wp)`` tensors per sigma (low-memory
-        mode: ~5 in all), plus the cached target CDFs (one per sigma). An upper bound: the
-        small-alpha terms of ``border="pad"`` and ``cell_fraction`` need less."""
+        """Approximate peak bytes of one forward + backward at image ``shape`` ((B,)C,H,W)
+        on the torch path: backward keeps ~(2 + |alphas|) ``(B, C, K, Hp, Wp)`` tensors per
+        sigma (low-memory mode: ~5 in all), plus the cached target CDFs (one per sigma). An
+        upper bound: the small-alpha terms of ``border="pad"``, ``cell_fraction`` and the fused
+        kernel (float32 on the CPU: one such tensor at a time, plus the cache) need less."""
         shape = tuple(shape) if len(shape) == 4 else (1, *shape)
         b, c, h, w = shape
         c = 1 if self.cfg.channels == "luminance" else c
