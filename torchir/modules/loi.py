@@ -423,9 +423,8 @@ def _term_weights(pw: torch.Tensor, t: _Term, truncate: float) -> torch.Tensor:
     pw = _trim(pw, t.trim)
     if t.cell == 1:
         return pw
-    _, ph = cell_means(pw.shape[-2], t.alpha, t.cell, truncate, pw.dtype, pw.device)
-    _, pw_ = cell_means(pw.shape[-1], t.alpha, t.cell, truncate, pw.dtype, pw.device)
-    return ph @ pw @ pw_.T
+    # sums over the cells of cell_means (samples i // cell; the last cell may be partial)
+    return F.avg_pool2d(pw, t.cell, stride=t.cell, ceil_mode=True, divisor_override=1)
 
 
 def _term_value(out: torch.Tensor, t: _Term, beta: float, pw: torch.Tensor, truncate: float) -> torch.Tensor:
