@@ -46,7 +46,7 @@ _SOURCE = r"""
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-#include <omp.h>
+#include <math.h>
 typedef float v8 __attribute__((vector_size(32)));
 typedef int32_t vi8 __attribute__((vector_size(32)));
 static inline v8 ld(const float* p) { v8 v; memcpy(&v, p, sizeof v); return v; }
@@ -209,7 +209,6 @@ static inline __m256 vphi(__m256 u) {
 }
 #endif
 
-#include <math.h>
 /* sum_i |x[i]| w[i]: float partial sums in vectors (a scalar running sum is one long dependency
    chain), each block of 1024 added in double */
 static double weighted_abs_sum(const float* x, const float* w, int64_t n) {
