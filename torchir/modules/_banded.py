@@ -233,43 +233,25 @@ static double weighted_abs_sum(const float* x, const float* w, int64_t n) {
   return sum;
 }
 
-/* d[i] = Phi((e - J[i]) / beta) - z */
-static void point_cdf_difference_const(const float* J, float z, float e, float inv_beta, int64_t n, float* d) {
-  int64_t i = 0;
-#if defined(__AVX2__) && defined(__FMA__)
-  const __m256 ve = _mm256_set1_ps(e), vb = _mm256_set1_ps(inv_beta), vz = _mm256_set1_ps(z);
-  for (; i + 8 <= n; i += 8)
-    _mm256_storeu_ps(d + i, _mm256_sub_ps(vphi(_mm256_mul_ps(_mm256_sub_ps(ve, _mm256_loadu_ps(J + i)), vb)), vz));
-#endif
-  for (; i < n; ++i) d[i] = 0.5f * erfcf((e - J[i]) * inv_beta * -0.70710678118654752f) - z;
-}
-
-/* d[i] = Phi((e - J[i]) / beta) - Z[i] */
+/* d[i] = Phi((e - J[i]) / beta) - Z[i], or Phi itself when Z is NULL */
 static void point_cdf_difference(const float* J, const float* Z, float e, float inv_beta, int64_t n, float* d) {
   int64_t i = 0;
 #if defined(__AVX2__) && defined(__FMA__)
   const __m256 ve = _mm256_set1_ps(e), vb = _mm256_set1_ps(inv_beta);
   for (; i + 8 <= n; i += 8) {
-    const __m256 u = _mm256_mul_ps(_mm256_sub_ps(ve, _mm256_loadu_ps(J + i)), vb);
-    _mm256_storeu_ps(d + i, _mm256_sub_ps(vphi(u), _mm256_loadu_ps(Z + i)));
+    const __m256 phi = vphi(_mm256_mul_ps(_mm256_sub_ps(ve, _mm256_loadu_ps(J + i)), vb));
+    _mm256_storeu_ps(d + i, Z ? _mm256_sub_ps(phi, _mm256_loadu_ps(Z + i)) : phi);
   }
 #endif
-  for (; i < n; ++i) d[i] = 0.5f * erfcf((e - J[i]) * inv_beta * -0.70710678118654752f) - Z[i];
+  for (; i < n; ++i) d[i] = 0.5f * erfcf((e - J[i]) * inv_beta * -0.70710678118654752f) - (Z ? Z[i] : 0.0f);
 }
 
 /* Z[q, j] = Phi((edges[j] - J[q]) / beta) for planes q < Q of HW samples: the point CDFs the
    fused kernel's differences are taken against (the same Phi, so equal images give exact 0) */
 void point_cdf(const float* J, const float* edges, int64_t Q, int64_t K, int64_t HW, float beta, float* Z, int threads) {
-  static const float zero = 0.0f;
   #pragma omp parallel for num_threads(threads) schedule(static)
-  for (int64_t p = 0; p < Q * K; ++p) {
-    const int64_t q = p / K, j = p % K;
-    float* out = Z + p * HW;
-    for (int64_t i = 0; i < HW; i += 4096) {  /* Phi(u) - 0, in chunks through the shared helper */
-      const int64_t n = HW - i < 4096 ? HW - i : 4096;
-      point_cdf_difference_const(J + q * HW + i, zero, edges[j], 1.0f / beta, n, out + i);
-    }
-  }
+  for (int64_t p = 0; p < Q * K; ++p)
+    point_cdf_difference(J + (p / K) * HW, NULL, edges[p % K], 1.0f / beta, HW, Z + p * HW);
 }
 
 /* g[i] = k * exp(-u^2 / 2) * gd[i], u = (e - J[i]) / beta */
@@ -473,32 +455,33 @@ class _Band:
     def length(self) -> int:
         return self.weights.shape[1]
 
+    @property
+    def narrow(self) -> bool:
+        """Whether the band pays (at most ``_NARROW * n_in`` wide); else the dense product."""
+        return self.length <= _NARROW * self.n_in
+
     @staticmethod
-    def of(m: torch.Tensor, narrow: float = _NARROW) -> _Band | None:
-        """The band form of ``m``, or ``None`` when its band is wider than ``narrow * n_in``."""
+    def of(m: torch.Tensor) -> _Band:
+        """The band form of ``m`` (as wide as its widest row's span of nonzeros)."""
         n_out, n_in = m.shape
         nonzero = m.detach().cpu() != 0
         cols = torch.arange(n_in)
         first = torch.where(nonzero, cols, n_in).min(1).values
         last = torch.where(nonzero, cols + 1, 0).max(1).values
         length = max(1, int((last - first).clamp(min=0).max()))
-        if length > narrow * n_in:
-            return None
         start = torch.minimum(first, torch.tensor(n_in - length)).clamp(min=0)
         weights = torch.gather(m.detach().float().cpu(), 1, start[:, None] + torch.arange(length)[None])
         return _Band(start.contiguous(), weights.contiguous(), n_in)
 
 
-_bands: dict[tuple[int, bool], tuple[_Band | None, _Band | None]] = {}  # (id(matrix), any width) -> forms of m, m^T
+_bands: dict[int, tuple[_Band, _Band]] = {}  # id(matrix) -> band forms of m and m^T
 
 
-def _forms(m: torch.Tensor, any_width: bool = False) -> tuple[_Band | None, _Band | None]:
-    """Band forms of ``m`` and ``m^T`` (``None`` where too wide), or with ``any_width`` always
-    band forms (a dense matrix is a band as wide as its rows), for the fused LOI kernel."""
-    key = (id(m), any_width)
+def _forms(m: torch.Tensor) -> tuple[_Band, _Band]:
+    """Band forms of ``m`` and ``m^T``, cached per matrix object."""
+    key = id(m)
     if key not in _bands:
-        narrow = 1.0 if any_width else _NARROW
-        _bands[key] = (_Band.of(m, narrow), _Band.of(m.T, narrow))
+        _bands[key] = (_Band.of(m), _Band.of(m.T))
         weakref.finalize(m, _bands.pop, key, None)  # ids are reused once m is gone
     return _bands[key]
 
@@ -522,7 +505,7 @@ def _native(x: torch.Tensor, mh: torch.Tensor, mw: torch.Tensor, transposed: boo
     if (lib := _load()) is None:  # no compiler: no band forms either
         return None
     bh, bw = (_forms(mh)[transposed], _forms(mw)[transposed])
-    if bh is None or bw is None:
+    if not (bh.narrow and bw.narrow):
         return None
     x = x.contiguous()
     return _apply_t(_apply_t(x, bh, lib), bw, lib)

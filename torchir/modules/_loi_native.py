@@ -7,8 +7,9 @@ gradient, ``A_alpha^T (sign(A_alpha D) w)`` summed over the terms and chained to
 (E10), all while the plane is in cache. The ``(B, C, K, H, W)`` volumes the torch path makes
 (``u``, ``D``, one ``A_alpha D`` per term, their signs, ``dE/dD``) are never materialised, and
 the gradient is ready when the forward pass ends (the loss is a sum: its backward only scales
-it). The reference's CDFs must come from :func:`point_cdf` (the same ``Phi``). Same values as the torch path to float32 rounding (``Phi`` and ``exp`` by polynomials
-good to ~1e-7 relative); float32 CPU tensors only, else :func:`sigma_term` returns ``None``.
+it). The reference's CDFs must come from :func:`point_cdf` (the same ``Phi``). Same values as
+the torch path to float32 rounding (``Phi`` and ``exp`` by polynomials good to ~1e-7
+relative); float32 CPU tensors only, else :func:`sigma_term` returns ``None``.
 """
 from __future__ import annotations
 
@@ -37,13 +38,13 @@ class _TermC(ctypes.Structure):
                 ("pw_cstride", _i64), ("out_h", _i64), ("out_w", _i64), ("scale", ctypes.c_float)]
 
 
-def _band(form: _banded._Band, n_out: int) -> _BandC:
-    return _BandC(form.start.data_ptr(), form.weights.data_ptr(), form.length, n_out, form.n_in)
+def _band(form: _banded._Band) -> _BandC:
+    return _BandC(form.start.data_ptr(), form.weights.data_ptr(), form.length, form.start.numel(), form.n_in)
 
 
 def _stage(mh: torch.Tensor, mw: torch.Tensor) -> _StageC:
-    (h, ht), (w, wt) = _banded._forms(mh, any_width=True), _banded._forms(mw, any_width=True)
-    return _StageC(_band(h, mh.shape[0]), _band(w, mw.shape[0]), _band(ht, mh.shape[1]), _band(wt, mw.shape[1]))
+    (h, ht), (w, wt) = _banded._forms(mh), _banded._forms(mw)  # any width: a dense matrix is a wide band
+    return _StageC(_band(h), _band(w), _band(ht), _band(wt))
 
 
 def usable(x: torch.Tensor) -> bool:

@@ -418,7 +418,7 @@ def _aperture_adjoint(g: torch.Tensor, ops: Operators) -> torch.Tensor:
     return g
 
 
-def _term_weights(pw: torch.Tensor, t: _Term, truncate: float) -> torch.Tensor:
+def _term_weights(pw: torch.Tensor, t: _Term) -> torch.Tensor:
     """Pixel weights on the term's canvas, summed per cell: ``(B, 1|C, H', W')``."""
     pw = _trim(pw, t.trim)
     if t.cell == 1:
@@ -427,16 +427,16 @@ def _term_weights(pw: torch.Tensor, t: _Term, truncate: float) -> torch.Tensor:
     return F.avg_pool2d(pw, t.cell, stride=t.cell, ceil_mode=True, divisor_override=1)
 
 
-def _term_value(out: torch.Tensor, t: _Term, beta: float, pw: torch.Tensor, truncate: float) -> torch.Tensor:
+def _term_value(out: torch.Tensor, t: _Term, beta: float, pw: torch.Tensor) -> torch.Tensor:
     """E7, unweighted, ``(B,)``, from the term's blurred difference ``out = A_alpha * D``."""
     w1 = out.abs().sum(2) * beta  # (B, C, H', W'): W1 per pixel/cell and channel
-    return (w1 * _term_weights(pw, t, truncate)).flatten(1).sum(1) / out.shape[1]
+    return (w1 * _term_weights(pw, t)).flatten(1).sum(1) / out.shape[1]
 
 
 def _scale_terms(d: torch.Tensor, terms: Sequence[_Term], beta: float, pw: torch.Tensor, truncate: float) -> list[torch.Tensor]:
     """E7 for each term: ``[(B,)]``, from ``d = Phi' - Phi^gt`` (E11: one blur per scale) on
     the support."""
-    return [_term_value(_aperture(d, op), t, beta, pw, truncate) for t, op in zip(terms, _term_operators(d, pw, terms, truncate))]
+    return [_term_value(_aperture(d, op), t, beta, pw) for t, op in zip(terms, _term_operators(d, pw, terms, truncate))]
 
 
 class _SigmaTerm(torch.autograd.Function):
@@ -458,10 +458,12 @@ class _SigmaTerm(torch.autograd.Function):
     @staticmethod
     def forward(ctx, j_sigma, z_target, edges, beta, terms, pw, truncate, low_memory):  # noqa: D102
         ops = _term_operators(z_target, pw, terms, truncate)
-        fused = _loi_native.sigma_term(
-            j_sigma, z_target, edges, beta, ops, [_term_weights(pw, t, truncate) for t in terms],
-            [t.weight * beta / j_sigma.shape[1] for t in terms], want_grad=ctx.needs_input_grad[0],
-        )
+        fused = None
+        if _loi_native.usable(j_sigma) and z_target.dtype == torch.float32:
+            fused = _loi_native.sigma_term(
+                j_sigma, z_target, edges, beta, ops, [_term_weights(pw, t) for t in terms],
+                [t.weight * beta / j_sigma.shape[1] for t in terms], want_grad=ctx.needs_input_grad[0],
+            )
         ctx.fused = fused is not None
         if fused is not None:  # the native kernel: the gradient comes with the loss
             total, grad_j = fused
@@ -469,7 +471,7 @@ class _SigmaTerm(torch.autograd.Function):
             return total
         u, d = _SigmaTerm._difference(j_sigma, z_target, edges, beta)
         outs = [_aperture(d, op) for op in ops]
-        total = sum(t.weight * _term_value(out, t, beta, pw, truncate) for t, out in zip(terms, outs))
+        total = sum(t.weight * _term_value(out, t, beta, pw) for t, out in zip(terms, outs))
         if low_memory:
             ctx.save_for_backward(j_sigma, z_target, edges, pw)
         else:
@@ -494,7 +496,7 @@ class _SigmaTerm(torch.autograd.Function):
         grad_d = torch.zeros_like(d)
         for t, op, out in zip(terms, ctx.ops, outs):
             out = _aperture(d, op) if out is None else out
-            scale = (grad.view(-1, 1, 1, 1) * _term_weights(pw, t, truncate)).mul_(t.weight * beta / c).unsqueeze(2)
+            scale = (grad.view(-1, 1, 1, 1) * _term_weights(pw, t)).mul_(t.weight * beta / c).unsqueeze(2)
             grad_d += _aperture_adjoint(torch.sign(out).mul_(scale), op)
         phi = u.square().mul_(-0.5).exp_()  # sqrt(2 pi) phi(u); the constant goes below
         grad_j = phi.mul_(grad_d).sum(2).mul_(-1.0 / (beta * math.sqrt(2 * math.pi)))  # d Phi(u) / dJ = -phi(u) / beta
