@@ -127,13 +127,14 @@ def _run(method: str, spp: int, errors: list[float], seconds: float = 0.1, burn_
 
 
 def test_summary_splits_floor_and_light_and_reads_gain_of_possible():
-    spp_eq = {"direct": 8, "B.1": 8, "B.2": 4, "ReSTIR (shadowed)": 1, "ReSTIR (unshadowed)": 2}
+    spp_eq = {"direct": 8, "B.1": 8, "B.2": 4, "ReSTIR (shadowed)": 1, "ReSTIR (unshadowed)": 2, "ReSTIR (persistent)": 2}
     runs = [
         _run("direct", 1, [0.5, 0.5]), _run("direct", 8, [0.2, 0.2]),
         _run("B.1", 1, [0.6, 0.6]), _run("B.1", 8, [0.25, 0.25]),
         _run("B.2", 1, [0.3, 0.3]), _run("B.2", 4, [0.16, 0.16]),
         _run("ReSTIR (shadowed)", 1, [0.05, 0.05], 0.3, 0.6), _run("ReSTIR (unshadowed)", 1, [0.06, 0.06], 0.2, 0.4),
         _run("ReSTIR (unshadowed)", 2, [0.045, 0.045]),
+        _run("ReSTIR (persistent)", 1, [0.045, 0.045], 0.1, 0.2), _run("ReSTIR (persistent)", 2, [0.032, 0.032]),
         _run(ORACLE, 1, [0.04, 0.04]), _run(ORACLE, 2, [0.03, 0.03]),
     ]
     def train_run(method: str, mode: str, rmse: float, steps: int) -> dict:
@@ -143,7 +144,8 @@ def test_summary_splits_floor_and_light_and_reads_gain_of_possible():
 
     recon = {mode: [train_run(m, mode, rmse, steps) for m, rmse, steps in
                     (("direct", 0.1, 20), ("B.1", 0.12, 18), ("B.2", 0.08, 10), ("ReSTIR (shadowed)", 0.04, 5),
-                     ("ReSTIR (unshadowed)", 0.05 if mode == "shared" else 0.02, 6))] for mode in ("shared", "decorrelated")}
+                     ("ReSTIR (unshadowed)", 0.05 if mode == "shared" else 0.02, 6), ("ReSTIR (persistent)", 0.016, 9))]
+             for mode in ("shared", "decorrelated")}
     s = summarize_scene(runs, 1, spp_eq, recon)
     rows = s["rows"]
     assert s["best_recon_baseline"] == "B.2" and rows["ReSTIR (shadowed)"]["recon_ratio_to_best_baseline"] == pytest.approx(0.5)
@@ -154,6 +156,8 @@ def test_summary_splits_floor_and_light_and_reads_gain_of_possible():
     assert rows["B.1"]["light"] == pytest.approx(math.sqrt(0.36 - 0.0016))
     assert rows["ReSTIR (shadowed)"]["gain"] == pytest.approx(3.2) and rows["ReSTIR (shadowed)"]["bound"] == pytest.approx(4.0)
     assert rows["ReSTIR (unshadowed)"]["bound"] == pytest.approx(0.16 / 0.03)  # the floor at its own equal-time spp
+    assert rows["ReSTIR (persistent)"]["gain"] == pytest.approx(5.0)  # at its own equal-time spp: 0.16 / 0.032
+    assert rows["ReSTIR (persistent)"]["recon_ratio_to_best_baseline"] == pytest.approx(0.2)
     assert rows["B.2"]["bound"] is None and rows[ORACLE]["light"] == 0.0
     assert rows["ReSTIR (shadowed)"]["charged_seconds_per_step"] == pytest.approx(0.6)
     text = tables({"config": {"spp": 1, "resolution": 32, "candidates": 8, "burn_in": 8, "oracle_candidates": 256, "grad_steps": 2,
@@ -236,3 +240,22 @@ def test_views_bench_tiny_run(tmp_path):
     table = restir_views.summarize({"per-sensor (burn-in 4)": {"rms_error": 0.2, "seconds": 2.0},
                                     "carry-over (burn-in 4)": {"rms_error": 0.1, "seconds": 4.0}}, [4])
     assert "| carry-over (burn-in 4) | 0.1000 | 4.00 | 2.00x |" in table
+
+
+def test_restir_variants_can_be_run_alone():
+    """``--restirs persistent``: the variant alone, so its own cost sets the equal-time budget."""
+    from torchir.bench import restir as bench
+
+    assert parse_args([]).restirs == ["shadowed", "unshadowed", "persistent"]
+    assert parse_args(["--restirs", "persistent"]).restirs == ["persistent"]
+    with pytest.raises(SystemExit):
+        parse_args(["--restirs", "fast"])
+    try:
+        bench.select_restirs(["persistent"])
+        assert bench.RESTIRS == ("ReSTIR (persistent)",) and bench.METHODS == (*BASELINES, "ReSTIR (persistent)")
+        assert bench.sampler_options("ReSTIR (persistent)", parse_args([]))["preset"] == "persistent"
+        with pytest.raises(ValueError):
+            bench.select_restirs(["persistent", "fast"])
+    finally:
+        bench.select_restirs(["shadowed", "unshadowed", "persistent"])
+    assert bench.RESTIRS == bench.ALL_RESTIRS

@@ -72,7 +72,7 @@ def test_ris_m1_equals_light_sampling_lane_for_lane(oxalis):
     sampler.set_sample_count(1)
     sampler.set_samples_per_wavefront(1)
     sampler.seed(3, n)
-    ray, weight = _sample_rays(sensor, sampler, 1, RES, RES)
+    ray, weight, _ = _sample_rays(sensor, sampler, 1, RES, RES)
     si = scene.ray_intersect(mi.Ray3f(ray))
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, si.is_valid())
     fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), si.is_valid())
@@ -173,16 +173,32 @@ def test_ris_gradient_unbiased(oxalis, prb_gradient):
     assert abs(float(m.sum() - ref.sum())) < 4 * math.hypot(sum_se, float(ref_se.norm()))
 
 
-@pytest.mark.parametrize("target", ["shadowed", "unshadowed"])
-def test_reuse_gradient_unbiased(oxalis, prb_gradient, target):
-    """12 independent chains (burn-in 4, then 4 steps each); z over chain means."""
+@pytest.mark.parametrize("lifetime", [4.0, math.inf])
+def test_persistent_chains_unbiased(oxalis, reference, lifetime):
+    """Lanes that keep their camera offsets and reuse their own reservoirs (preset
+    ``persistent``; lifetime 4: a quarter of the offsets redrawn each step, those lanes
+    starting afresh): chain means match the reference as spatiotemporal reuse's do."""
+    ref, _, ref_mean_se = reference
+    chains = _chains(oxalis, 12, 10, 2, preset="persistent", candidates=4, burn_in=4, offset_lifetime=lifetime)
+    assert np.isfinite(chains).all()
+    ratio, se = _mean_ratio_and_se(chains, ref)
+    bound = 4 * math.hypot(se, ref_mean_se)
+    assert bound < 0.05
+    assert abs(ratio - 1) < bound
+
+
+@pytest.mark.parametrize("target, preset", [("shadowed", "restir"), ("unshadowed", "restir"), ("shadowed", "persistent")])
+def test_reuse_gradient_unbiased(oxalis, prb_gradient, target, preset):
+    """12 independent chains (burn-in 4, then 4 steps each); z over chain means. The
+    ``persistent`` chains keep their offsets for 4 steps on average."""
     ref, ref_se = prb_gradient
     torch.manual_seed(0)
     weights = torch.rand(3, RES, RES)
     tex = oxalis.get(KEY)
     chain_means = []
     for c in range(12):
-        r = ReSTIRSampler(oxalis, candidates=4, burn_in=4, seed=c + 1, target=target)
+        r = ReSTIRSampler(oxalis, candidates=4, burn_in=4, seed=c + 1, target=target, preset=preset,
+                          offset_lifetime=4.0 if preset == "persistent" else None)
         gs = []
         for i in range(4):
             t = tex.clone().requires_grad_()
@@ -814,7 +830,7 @@ def test_area_light_m1_equals_light_sampling(area_scene):
     sampler.set_sample_count(1)
     sampler.set_samples_per_wavefront(1)
     sampler.seed(4, RES * RES)
-    ray, weight = _sample_rays(sensor, sampler, 1, RES, RES)
+    ray, weight, _ = _sample_rays(sensor, sampler, 1, RES, RES)
     si = scene.ray_intersect(mi.Ray3f(ray))
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, si.is_valid())
     fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), si.is_valid())

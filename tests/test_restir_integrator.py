@@ -171,7 +171,8 @@ def test_defaults_and_initial_state():
     got = {k: getattr(i, k) for k in restir_di._OPTIONS}
     assert got == {"candidates": 16, "neighbors": 8, "radius": 0.0, "normal_threshold": 0.9, "m_cap": 32.0,
                    "temporal": True, "spatial": True, "burn_in": 32, "grad_paths": "shared", "forward_only": False,
-                   "nn_backend": "auto", "target": "shadowed", "freeze": True, "multiview": "auto", "spp_chains": True}
+                   "nn_backend": "auto", "target": "shadowed", "freeze": True, "multiview": "auto", "spp_chains": True,
+                   "offset_lifetime": 0.0}
     assert type(i.m_cap) is float and type(i.radius) is float and type(i.normal_threshold) is float
     assert i.states == {} and i.last == {} and i.timings == {} and i.stats == {}
     assert i.last_pass_frozen is False and i._frozen_pass is None and i._last_pass is None
@@ -594,7 +595,7 @@ def test_state_dict_round_trip(point):
     assert d["steps"] == 2 and d["camera"] == a.states[0].camera and d["lights"] == a.states[0].lights
     res = d["reservoirs"]
     assert set(res) == {"y.em", "y.p", "y.n", "y.uv", "y.delta", "W", "M", "w_sum", "shape", "prim", "prim_uv",
-                        "o", "d", "t", "p", "n", "valid"}
+                        "o", "d", "t", "offset", "p", "n", "valid"}
     assert res["y.p"].shape == (RES * RES, 3) and res["prim_uv"].shape == (RES * RES, 2) and res["W"].shape == (RES * RES,)
     assert np.array_equal(res["W"], _np(a.states[0].prev.W).astype(np.float32))
     assert np.array_equal(res["y.p"], _np(a.states[0].prev.y.p).T.astype(np.float32))
@@ -1147,3 +1148,84 @@ def test_geometry_backward_adds_the_boundary_terms(point, monkeypatch):
     np.testing.assert_allclose(g, g_plain, rtol=1e-5, atol=1e-7)
     assert len(calls) == 1 and calls[0][0] is point and calls[0][1] == "the params" and calls[0][2] is grad_in
     assert calls[0][3:] == (0, 9, 1)
+
+
+# ------------------------------------------------------------------------------ persistent offsets
+@pytest.mark.parametrize("bad", [-1.0, 0.5, float("nan")])
+def test_offset_lifetime_is_checked(bad):
+    msg = _msg(ValueError, _integrator, offset_lifetime=bad)
+    assert msg.startswith("offset_lifetime must be None or 0 (a fresh camera offset every step) or >= 1 steps")
+
+
+def _offsets(i: ReSTIRDirectIntegrator) -> np.ndarray:
+    return np.stack([_np(i.states[0].prev.offset.x), _np(i.states[0].prev.offset.y)], 1)
+
+
+def test_persistent_offsets_stay_and_the_lane_reuses_its_own_reservoir(point):
+    """offset_lifetime=inf: every lane keeps the camera offset it drew first (so its shading
+    point), and the reuse is the lane's own reservoir (no search), whose M grows to the chain
+    cap; the offsets are uniform in the pixel (means and variances within 5 standard errors)."""
+    i = _integrator(candidates=2, burn_in=3, spatial=False, offset_lifetime=float("inf"))
+    assert i.chain_cap == 128.0 and i.m_cap == 4.0
+    i.step(point, 0, 0, 4)
+    first = _offsets(i)
+    for s in range(1, 4):
+        i.step(point, 0, s, 4)
+        assert np.array_equal(_offsets(i), first)
+        assert i._neighbour_search.last == "lane"
+    valid = _np(i.states[0].prev.valid) > 0
+    assert _np(i.states[0].prev.M)[valid].min() == 2.0 * (3 + 4)  # 7 passes, nothing capped yet
+    n = first.size
+    assert abs(first.mean() - 0.5) < 5 * math.sqrt(1 / 12 / n)
+    assert abs(first.var() - 1 / 12) < 5 * math.sqrt(1 / 180 / n)  # Var of (u - 1/2)^2 is 1/180
+
+
+def test_offsets_are_redrawn_at_the_lifetime_rate_whatever_their_rays_hit(point):
+    """offset_lifetime=2: each step about half the lanes draw a new offset, as often where the
+    ray missed the scene as where it hit (a redraw that depended on the hit would drift the
+    offsets towards hits: biased); lifetime 1 redraws every lane, so nothing is reused."""
+    i = _integrator(candidates=2, burn_in=1, spatial=False, offset_lifetime=2)
+    i.step(point, 0, 0, 4)
+    changed, hit = [], []
+    for s in range(1, 9):
+        before, valid = _offsets(i), _np(i.states[0].prev.valid) > 0
+        i.step(point, 0, s, 4)
+        changed.append((_offsets(i) != before).any(1))
+        hit.append(valid)
+    changed, hit = np.concatenate(changed), np.concatenate(hit)
+    assert 0 < hit.mean() < 1  # the point scene has background lanes
+    for group in (hit, ~hit):
+        k = group.sum()
+        assert abs(changed[group].mean() - 0.5) < 5 * math.sqrt(0.25 / k), (changed[group].mean(), k)
+    j = _integrator(candidates=2, burn_in=2, spatial=False, offset_lifetime=1)
+    for s in range(3):
+        j.step(point, 0, s, 2)
+    valid = _np(j.states[0].prev.valid) > 0
+    assert (_np(j.states[0].prev.M)[valid] == 2.0).all()  # every lane started afresh
+
+
+def test_offsets_are_fresh_after_a_geometry_edit_and_for_older_checkpoints(point):
+    """A moved shape changes the shading points behind the kept offsets: that step draws new
+    offsets and searches (the lane's own reservoir is no longer at its point); a state dict
+    without offsets (saved before they existed) loads and draws them."""
+    i = _integrator(candidates=2, burn_in=2, spatial=False, offset_lifetime=float("inf"))
+    i.step(point, 0, 0, 1)
+    kept = _offsets(i)
+    params = mi.traverse(point)
+    key = "blocker.to_world"
+    original = type(params[key])(params[key])
+    try:
+        params[key] = type(original)().translate([0.01, 0.0, 0.0]) @ original
+        params.update()
+        i.step(point, 0, 1, 1)
+        assert i._neighbour_search.last != "lane" and not np.array_equal(_offsets(i), kept)
+    finally:
+        params[key] = original
+        params.update()
+    state = i.state_dict()
+    del state[0]["reservoirs"]["offset"]
+    j = _integrator(candidates=2, burn_in=2, spatial=False, offset_lifetime=float("inf"))
+    j.load_state_dict(state)
+    assert np.isnan(_offsets(j)).all()
+    j.step(point, 0, 2, 1)
+    assert np.isfinite(_offsets(j)).all() and (_offsets(j) >= 0).all() and (_offsets(j) < 1).all()

@@ -42,6 +42,7 @@ def _options(r: ReSTIRSampler) -> dict:
         "temporal": i.temporal, "spatial": i.spatial, "burn_in": i.burn_in, "grad_paths": i.grad_paths,
         "forward_only": i.forward_only, "nn_backend": i.nn_backend, "normal_threshold": i.normal_threshold,
         "target": i.target, "freeze": i.freeze, "multiview": i.multiview, "spp_chains": i.spp_chains,
+        "offset_lifetime": i.offset_lifetime,
     }
 
 
@@ -60,6 +61,7 @@ def test_defaults(scene):
         "candidates": 16, "neighbors": 8, "radius": 0.0, "m_cap": 32.0, "temporal": True, "spatial": True,
         "burn_in": 32, "grad_paths": "shared", "forward_only": False, "nn_backend": "auto",
         "normal_threshold": 0.9, "target": "shadowed", "freeze": True, "multiview": "auto", "spp_chains": True,
+        "offset_lifetime": 0.0,
     }
     assert type(r.integrator.radius) is float and type(r.integrator.m_cap) is float
 
@@ -68,13 +70,14 @@ def test_options_reach_the_integrator(scene):
     r = ReSTIRSampler(
         scene, candidates=3, neighbors=5, radius=0.25, m_cap=7, temporal=False, spatial=True, burn_in=4,
         grad_paths="decorrelated", nn_backend="grid", seed=11, normal_threshold=0.5, target="unshadowed",
-        freeze=False, multiview="carry_over", spp_chains=False,
+        freeze=False, multiview="carry_over", spp_chains=False, offset_lifetime=64,
     )
     assert r.preset == "restir" and r.seed == 11
     assert _options(r) == {
         "candidates": 3, "neighbors": 5, "radius": 0.25, "m_cap": 7.0, "temporal": False, "spatial": True,
         "burn_in": 4, "grad_paths": "decorrelated", "forward_only": False, "nn_backend": "grid",
         "normal_threshold": 0.5, "target": "unshadowed", "freeze": False, "multiview": "carry_over", "spp_chains": False,
+        "offset_lifetime": 64.0,
     }
     r = ReSTIRSampler(scene, candidates=5, radius=1, temporal=True, spatial=False, nn_backend="screen")
     i = r.integrator
@@ -83,7 +86,7 @@ def test_options_reach_the_integrator(scene):
 
 
 def test_presets(scene):
-    assert _PRESETS == ("restir", "b1", "b2", "forward_only")
+    assert _PRESETS == ("restir", "persistent", "b1", "b2", "forward_only")
     kw = dict(candidates=6, neighbors=3, burn_in=9, temporal=True, spatial=True)
     b1 = ReSTIRSampler(scene, preset="b1", **kw)
     assert b1.preset == "b1"
@@ -100,6 +103,12 @@ def test_presets(scene):
     re_ = ReSTIRSampler(scene, preset="restir", **kw)
     o = _options(re_)
     assert (o["candidates"], o["temporal"], o["spatial"], o["burn_in"], o["forward_only"]) == (6, True, True, 9, False)
+    assert (o["offset_lifetime"], o["m_cap"], re_.integrator.chain_cap) == (0.0, 12.0, 384.0)
+    persistent = _options(ReSTIRSampler(scene, preset="persistent", **kw))
+    assert (persistent["candidates"], persistent["temporal"], persistent["spatial"], persistent["burn_in"]) == (6, True, False, 9)
+    assert (persistent["offset_lifetime"], persistent["multiview"]) == (512.0, "per_sensor")
+    assert _options(ReSTIRSampler(scene, preset="persistent", offset_lifetime=float("inf")))["offset_lifetime"] == float("inf")
+    assert ReSTIRSampler(scene, m_cap=50).integrator.chain_cap == 50.0  # an explicit cap bounds both
     for preset in _PRESETS:
         assert ReSTIRSampler(scene, preset=preset).preset == preset
 
@@ -108,7 +117,7 @@ def test_bad_scene_and_preset(scene):
     assert _raises(TypeError, ReSTIRSampler, "oxalis") == "scene must be a torchir.Scene, got str"
     assert _raises(TypeError, ReSTIRSampler, scene.mi_scene).startswith("scene must be a torchir.Scene, got ")
     msg = _raises(ValueError, ReSTIRSampler, scene, preset="B1")
-    assert msg == "preset must be one of ('restir', 'b1', 'b2', 'forward_only'), got 'B1'"
+    assert msg == "preset must be one of ('restir', 'persistent', 'b1', 'b2', 'forward_only'), got 'B1'"
     assert _raises(ValueError, ReSTIRSampler, scene, preset=None).endswith("got None")
 
 

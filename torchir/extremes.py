@@ -305,22 +305,26 @@ def _restir_door_closed(**options: Any) -> Callable[[dict], Any]:
     return run
 
 
-def _restir_light_on_after_burn_in(ctx: dict) -> Any:
+def _restir_light_on_after_burn_in(**options: Any) -> Callable[[dict], Any]:
     """Burn-in and two steps with the light off, then a step with it on: the old (empty)
     reservoirs are not reused for that step, the fresh candidates find the light."""
-    import torchir
-    from torchir.functions import render
-    from torchir.samplers import ReSTIRSampler
 
-    scene = torchir.Scene.builtin("cbox", resolution=8, max_depth=2)
-    red = torch.full((3,), 0.5, requires_grad=True)
-    sampler = ReSTIRSampler(scene, burn_in=2, seed=0)
-    off = {RED: red, LIGHT: torch.zeros(3)}
-    for step in range(2):
-        render(scene, off, spp=1, seed=step, sampler=sampler)
-    image = render(scene, {RED: red}, spp=1, seed=2, sampler=sampler)
-    image.sum().backward()
-    return [image, red.grad]
+    def run(ctx: dict) -> Any:
+        import torchir
+        from torchir.functions import render
+        from torchir.samplers import ReSTIRSampler
+
+        scene = torchir.Scene.builtin("cbox", resolution=8, max_depth=2)
+        red = torch.full((3,), 0.5, requires_grad=True)
+        sampler = ReSTIRSampler(scene, **{"burn_in": 2, "seed": 0, **options})
+        off = {RED: red, LIGHT: torch.zeros(3)}
+        for step in range(2):
+            render(scene, off, spp=1, seed=step, sampler=sampler)
+        image = render(scene, {RED: red}, spp=1, seed=2, sampler=sampler)
+        image.sum().backward()
+        return [image, red.grad]
+
+    return run
 
 
 def _lit_with_gradient(result: Any, ctx: dict) -> str | None:
@@ -330,9 +334,9 @@ def _lit_with_gradient(result: Any, ctx: dict) -> str | None:
     return None
 
 
-def _restir_zero_albedo(result: Any, ctx: dict) -> str | None:
-    """A black red wall: images >= 0, and the wall's direct light gives d(sum)/d(albedo) > 0
-    in every channel (the ReSTIR estimate of a positive integrand is positive)."""
+def _restir_positive_gradient(result: Any, ctx: dict) -> str | None:
+    """Images >= 0, and the red wall's direct light gives d(sum)/d(albedo) > 0 in every
+    channel (the ReSTIR estimate of a positive integrand is positive), also for a black wall."""
     *images, grad, _ = result
     return _non_negative_with_positive_gradient([images[-1], grad], ctx)
 
@@ -493,10 +497,16 @@ CASES: list[Case] = [
     # ReSTIR --------------------------------------------------------------------------------
     Case("ReSTIRSampler", "light switched off (empty reservoirs)", _restir(light=0.0), check=_restir_light_off),
     Case("ReSTIRSampler", "1e6 radiance", _restir(light=1e6), check=_restir_scales_with_emission),
-    Case("ReSTIRSampler", "zero albedo", _restir(albedo=0.0), check=_restir_zero_albedo),
+    Case("ReSTIRSampler", "zero albedo", _restir(albedo=0.0), check=_restir_positive_gradient),
     Case("ReSTIRSampler", "every candidate occluded (door closed, no fill)", _restir_door_closed(), check=_restir_light_off),
     Case("ReSTIRSampler", "every candidate occluded, unshadowed target", _restir_door_closed(target="unshadowed"), check=_restir_light_off),
-    Case("ReSTIRSampler", "light switched on after burn-in", _restir_light_on_after_burn_in, check=_lit_with_gradient),
+    Case("ReSTIRSampler", "light switched on after burn-in", _restir_light_on_after_burn_in(), check=_lit_with_gradient),
+    Case("ReSTIRSampler", "persistent offsets: light switched off", _restir(light=0.0, preset="persistent"), check=_restir_light_off),
+    Case("ReSTIRSampler", "persistent offsets: every candidate occluded", _restir_door_closed(preset="persistent"), check=_restir_light_off),
+    Case("ReSTIRSampler", "persistent offsets: light switched on after burn-in", _restir_light_on_after_burn_in(preset="persistent"),
+         check=_lit_with_gradient),
+    Case("ReSTIRSampler", "persistent offsets: 1e6 radiance", _restir(light=1e6, preset="persistent"),
+         check=_restir_positive_gradient),
     Case("ReSTIRSampler", "one candidate, no reuse (B.1)", _restir(preset="b1"), check=_restir_b1),
     Case("ReSTIRSampler", "light-position gradient (unsupported)", _trainer_step(scene="glossy_highlight", parameters={"light.azimuth": {"init": 0.5}}, sampler={"type": "restir"}), ValueError, "light parameter"),
     Case("ReSTIRSampler", "indirect light requested", lambda ctx: _restir_on_depth4(ctx), ValueError, "direct"),

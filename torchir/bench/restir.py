@@ -10,6 +10,9 @@ Methods (every one recovers the scene's albedo texture, ``torchir.scenes.get(nam
 * **ReSTIR (shadowed)** / **ReSTIR (unshadowed)**: RIS + spatiotemporal reuse of the previous
   step's reservoirs, ``target="shadowed"`` (p̂ includes visibility, the paper) or
   ``"unshadowed"`` (one shadow ray for the chosen sample);
+* **ReSTIR (persistent)**: ``preset="persistent"``: every camera sample keeps its offset in the
+  pixel (redrawn every 512 steps on average) and resamples with its own previous reservoir
+  (temporal reuse at the same shading point, M capped at 64 x candidates), no spatial reuse;
 * **floor**: the oracle of spec §5.1, RIS over ``--oracle-candidates`` (256) shadowed
   candidates, no reuse, at the same seeds and spp as the method: the camera rays of a
   ``ReSTIRSampler`` render depend only on the seed, so the oracle sees the same camera rays
@@ -75,12 +78,23 @@ from typing import Any
 
 from torchir.bench import combined
 
-__all__ = ["BASELINES", "METHODS", "ORACLE", "ORACLE_LOW", "RESTIRS", "camera_floor", "main", "parse_args", "plot_results", "summarize_scene", "tables"]
+__all__ = ["ALL_RESTIRS", "BASELINES", "METHODS", "ORACLE", "ORACLE_LOW", "RESTIRS", "camera_floor", "select_restirs", "main", "parse_args", "plot_results", "summarize_scene", "tables"]
 
 DEFAULT_SCENES = ("ajar_painting", "many_lights", "oxalis_lite")
 BASELINES = ("direct", "B.1", "B.2")
-RESTIRS = ("ReSTIR (shadowed)", "ReSTIR (unshadowed)")
+ALL_RESTIRS = ("ReSTIR (shadowed)", "ReSTIR (unshadowed)", "ReSTIR (persistent)")
+RESTIRS = ALL_RESTIRS  # the variants of this run (select_restirs)
 METHODS = (*BASELINES, *RESTIRS)
+
+
+def select_restirs(names: Sequence[str]) -> None:
+    """Run the ReSTIR variants ``names`` ("shadowed", "unshadowed", "persistent") only: the
+    slowest of them sets the equal-time budget, so one variant alone is compared at its own cost."""
+    global RESTIRS, METHODS
+    chosen = tuple(m for m in ALL_RESTIRS if m[len("ReSTIR ("):-1] in names)
+    if not chosen or len(chosen) != len(set(names)):
+        raise ValueError(f"--restirs takes some of shadowed, unshadowed, persistent; got {','.join(names)}")
+    RESTIRS, METHODS = chosen, (*BASELINES, *chosen)
 ORACLE = "floor (oracle)"  # RIS over the larger --oracle-candidates count
 ORACLE_LOW = "oracle (fewer candidates)"  # the smaller count: with ORACLE, extrapolates the floor
 STAGES = ("pass", "ris", "nn", "combine", "develop", "backward")  # "pass": a frozen (dr.freeze) pass has one timer
@@ -114,6 +128,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                    help="comma list of the samplers' gradient paths in the reconstruction, shared and/or decorrelated "
                         "(default both, quick shared; the first fills the main table; direct (prb) is always decorrelated)")
     p.add_argument("--no-reconstruction", action="store_true", help="skip the trainer runs")
+    p.add_argument("--restirs", default="shadowed,unshadowed,persistent",
+                   help="ReSTIR variants to run; the slowest sets the equal-time budget (default all three)")
     p.add_argument("--quick", action="store_true",
                    help="32², the first default scene, burn-in 8, 8 gradient / 10 training steps, shared paths only: under a minute")
     p.add_argument("--out", default="results/bench_restir")
@@ -144,6 +160,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         p.error("--grad-steps must be >= 2 (the first step holds the burn-in and is left out of the step time)")
     if a.ref_spp < 4:
         p.error("--ref-spp must be >= 4 (four reference batches)")
+    a.restirs = [v.strip() for v in a.restirs.split(",") if v.strip()]
+    if not a.restirs or any(v not in ("shadowed", "unshadowed", "persistent") for v in a.restirs):
+        p.error("--restirs takes some of shadowed, unshadowed, persistent")
     return a
 
 
@@ -176,6 +195,8 @@ def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None
         return {"preset": "b2", "candidates": a.oracle_candidates}
     if method == ORACLE_LOW:
         return {"preset": "b2", "candidates": a.oracle_low}
+    if method == "ReSTIR (persistent)":
+        return {"preset": "persistent", "candidates": a.candidates, "burn_in": a.burn_in}
     if method in RESTIRS:
         target = "unshadowed" if "unshadowed" in method else "shadowed"
         return {"candidates": a.candidates, "burn_in": a.burn_in, "target": target, "nn_backend": a.nn_backend}
@@ -763,6 +784,7 @@ def run_scene(name: str, a: argparse.Namespace) -> dict[str, Any]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     a = parse_args(argv)
+    select_restirs(a.restirs)
     import torchir
 
     torchir.backend.set_variant("auto")

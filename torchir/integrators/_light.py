@@ -37,7 +37,8 @@ def _types(variant: str):
 
         The shading point is stored as (shape index, primitive, primitive uv) plus its camera
         ray (``o``, ``d``, ``t``), so it can be rebuilt after parameters change (T-U6); ``p``
-        and ``n`` are the position and shading normal used for the neighbour search.
+        and ``n`` are the position and shading normal used for the neighbour search;
+        ``offset`` is the camera sample's position in its pixel (kept by persistent offsets).
         """
 
         DRJIT_STRUCT = {
@@ -51,6 +52,7 @@ def _types(variant: str):
             "o": mi.Point3f,
             "d": mi.Vector3f,
             "t": mi.Float,
+            "offset": mi.Point2f,
             "p": mi.Point3f,
             "n": mi.Vector3f,
             "valid": mi.Bool,

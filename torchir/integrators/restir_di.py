@@ -27,10 +27,23 @@
      - 0.9
    * - ``m_cap``
      - int
-     - cap on a neighbour's and a stored reservoir's M (D2); 0 = 2 * candidates (measured: lower
-       gradient error than Bitterli's 20 * candidates, even with the parameters held still:
-       a long memory spreads one sample over many pixels of a step, so per-texel gradients stop
-       averaging; ``scripts/sweep_restir.py`` compares them).
+     - cap on a neighbour's and a stored reservoir's M (D2); 0 = 2 * candidates for reservoirs
+       found by a search, 64 * candidates for a lane's own chain (``offset_lifetime``). Any
+       move of a shading point lets a long memory count in Z (R8) where its sample is hidden
+       from the new point: rare lanes go dark or bright for as many steps as the memory lasts
+       (measured at 128², ``ajar_painting``: a 20 * candidates cap with searched neighbours
+       2.4x the gradient error of 2 *; a lane's chain whose offset walks 0.05 pixel a step,
+       4.5x (7.8x on ``many_lights``) the error of a fixed one). A chain at a fixed shading
+       point has no such events, so it keeps 64 *.
+     - 0
+   * - ``offset_lifetime``
+     - float
+     - steps a camera sample keeps its offset in the pixel, on average (each step a lane's
+       offset is redrawn with probability 1 / lifetime, independently of everything else, so
+       every step's offsets stay uniform and its estimate unbiased); 0 = a fresh offset every
+       step; ``inf`` = until the sensor or the geometry changes. With ``temporal`` and without
+       ``spatial`` a kept lane resamples with its own previous reservoir, at the same shading
+       point; a redrawn lane starts afresh. See ``preset="persistent"`` of ``ReSTIRSampler``.
      - 0
    * - ``temporal`` / ``spatial``
      - bool
@@ -99,6 +112,7 @@ RGB variants only; no media, no environment emitters, a box pixel filter.
 from __future__ import annotations
 
 import copy
+import math
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -132,11 +146,14 @@ _OPTIONS = {
     "freeze": True,
     "multiview": "auto",
     "spp_chains": True,
+    "offset_lifetime": 0.0,
 }
 MULTIVIEW = ("auto", "per_sensor", "carry_over")
 STORE = -1  # the state key of the one reservoir store of multiview="carry_over"
+LOADED = ("loaded",)  # SensorState.geometry of reservoirs loaded from a state dict
 
 
+CHAIN_CAP = 64  # default M cap of a lane's own chain, in candidates (m_cap: 2; see the m_cap row above)
 UNROLLED_CANDIDATES = 32  # more candidates: a symbolic loop (kernel size and compile time)
 
 
@@ -176,6 +193,7 @@ class SensorState:
     signature: tuple = ()
     camera: tuple | None = None  # (sensor matrix, width, height, spp) of ``prev``
     lights: tuple | None = None  # EmitterWatch state when ``prev`` was made
+    geometry: tuple | None = None  # GeometryWatch state when ``prev`` was made
 
 
 @dataclass
@@ -196,6 +214,7 @@ class PassStats:
     neighbor_count: Any = None  # UInt32 per lane: neighbours combined (None: no reuse)
     k: int = 0
     camera: tuple | None = None  # the pass's (sensor matrix, width, height, spp)
+    geometry: tuple | None = None  # the scene's geometry (GeometryWatch) during the pass
     zero: Any = None  # (LightSample y0, Float w0) per lane: see the module docstring
     timings: dict = field(default_factory=dict)
 
@@ -227,6 +246,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.normal_threshold = float(cfg["normal_threshold"])
         m_cap = _check_int("m_cap", cfg["m_cap"], 0)
         self.m_cap = float(m_cap if m_cap > 0 else 2 * self.candidates)
+        self.chain_cap = float(m_cap if m_cap > 0 else CHAIN_CAP * self.candidates)
         self.temporal, self.spatial = bool(cfg["temporal"]), bool(cfg["spatial"])
         self.burn_in = _check_int("burn_in", cfg["burn_in"], 0)
         if cfg["grad_paths"] not in ("shared", "decorrelated"):
@@ -245,6 +265,10 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             raise ValueError(f"multiview must be 'auto', 'per_sensor' or 'carry_over', got {cfg['multiview']!r}")
         self.multiview = cfg["multiview"]
         self.spp_chains = bool(cfg["spp_chains"])
+        self.offset_lifetime = float(0.0 if cfg["offset_lifetime"] is None else cfg["offset_lifetime"])
+        if not (self.offset_lifetime == 0.0 or self.offset_lifetime >= 1.0):  # NaN fails both
+            raise ValueError(f"offset_lifetime must be None or 0 (a fresh camera offset every step) or >= 1 "
+                             f"steps (inf: kept until the sensor moves), got {cfg['offset_lifetime']!r}")
         self._neighbour_search = _knn.NeighbourSearch(self.nn_backend)
         self._emitter_watch = EmitterWatch()
         self.freeze = bool(cfg["freeze"])
@@ -323,7 +347,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             for i in range(self.burn_in):
                 burn_seed = int(mi.sample_tea_32(seed, 0x5EED0000 + i)[0])
                 _, st.prev, burn = self.sample_paths(scene, sensor, burn_seed, spp, st.prev, st, st.camera)
-                st.camera = burn.camera
+                st.camera, st.geometry = burn.camera, burn.geometry
         t_burn = _tic() - t0
         lights = self._emitter_watch(scene) if self.temporal else None  # only temporal reuse needs it
         prev, prev_camera = st.prev, st.camera
@@ -334,7 +358,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if self.temporal and carry:  # Alg. A8: one store for all views
             st.prev, st.camera, st.lights = carry_over(scene, sensor, out, prev), None, lights
         elif self.temporal:
-            st.prev, st.camera, st.lights = out, stats.camera, lights
+            st.prev, st.camera, st.lights, st.geometry = out, stats.camera, lights, stats.geometry
         st.steps += 1
         self.timings = {"burn_in": t_burn, **stats.timings}
         self._last_pass = (out, stats)  # statistics computed on demand (host syncs)
@@ -365,13 +389,20 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         static = source != "temporal" or prev_camera == camera  # same view, same lane layout
         layout = _knn.ScreenLayout(w, h, spp, st.window, self.spp_chains) if static else None
         reproject = source == "temporal" and self.carries_over(scene)  # the store: any views
+        # the previous step's lanes are this step's (same camera and layout, same geometry, so
+        # the same shading points): offsets persist
+        geometry = self._geometry_watch(scene)
+        if st.geometry == LOADED:  # reservoirs from a checkpoint: of this scene's geometry
+            st.geometry = geometry
+        keep_offsets = (self.offset_lifetime > 0 and source == "temporal" and static and not reproject
+                        and geometry == st.geometry)
         freeze = self.freeze and (source == "none" or reproject or (layout is not None and self.nn_backend in ("auto", "screen")))
         if freeze:
             freeze = self._frozen_pass_ready(scene)
-        stats = PassStats(camera=camera, k=k if source != "none" else 0)
+        stats = PassStats(camera=camera, k=k if source != "none" else 0, geometry=geometry)
         # the store's points bucketed by their pixel in this film (traced: see bucket_by_pixel)
         buckets = _knn.bucket_by_pixel(*project(sensor_obj, prev), w * h) if reproject else None
-        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout, bool(zero_remainder), buckets)
+        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout, bool(zero_remainder), buckets, keep_offsets)
         t0 = _tic()
         if freeze:  # traced once per configuration, then replayed (no Python tracing, no codegen)
             try:
@@ -382,7 +413,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                 warnings.warn(f"frozen ReSTIR pass failed ({error!r}); this integrator now runs unfrozen", stacklevel=2)
         if freeze:
             stats.timings = {"pass": _tic() - t0}
-            self._neighbour_search.last = None if source == "none" else ("reprojected" if reproject else "screen")
+            self._neighbour_search.last = (None if source == "none" else "reprojected" if reproject
+                                           else "lane" if keep_offsets and not self.spatial else "screen")
         else:
             timings: dict[str, float] = {}
             ray_weight, image, r, n_ok, zero = self._pass(mi.UInt32(seed), *args, timings)
@@ -413,9 +445,14 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self._frozen_pass, self._geometry_frozen = dr.freeze(self._pass, warn_after=recordings), now
         return True
 
-    def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, buckets, timings):
+    def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, buckets, keep_offsets,
+              timings):
         """The resampling pass on Dr.Jit values only (so it can be frozen): camera rays,
         streaming RIS, the neighbour search (``screen`` when frozen) and the combination.
+        ``keep_offsets``: ``prev`` has this pass's lanes; each lane keeps its camera offset, so
+        its shading point, unless redrawn (probability 1 / ``offset_lifetime``), and with
+        temporal reuse alone combines with its own previous reservoir (a redrawn lane starts
+        afresh).
         ``timings`` (a dict, or None when frozen): seconds per stage, measured with syncs."""
 
         def tic(name=None, since=None):
@@ -434,7 +471,16 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         sampler.set_sample_count(spp)
         sampler.set_samples_per_wavefront(spp)
         sampler.seed(seed, n)
-        ray, ray_weight = _sample_rays(sensor_obj, sampler, spp, w, h)
+        lane = dr.arange(mi.UInt32, n)
+        if keep_offsets:
+            # redrawn independently of the offset and its hit (else offsets would drift towards
+            # hits); NaN: no offset stored (an older checkpoint)
+            keep = dr.isfinite(prev.offset.x)
+            if math.isfinite(self.offset_lifetime):  # a hash apart from the sampler's (its values fill redrawn lanes)
+                keep &= mi.sample_tea_float32(lane, seed ^ 0x0FF5E7D0) * self.offset_lifetime >= 1.0
+            ray, ray_weight, offset = _sample_rays(sensor_obj, sampler, spp, w, h, prev.offset, keep)
+        else:
+            ray, ray_weight, offset = _sample_rays(sensor_obj, sampler, spp, w, h)
         pi = scene.ray_intersect_preliminary(mi.Ray3f(ray), coherent=True)
         si = pi.compute_surface_interaction(mi.Ray3f(ray), FORWARD_FLAGS)
         valid = si.is_valid()
@@ -450,19 +496,27 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         r.y, r.w_sum, r.M = y, w_sum, m0
         r.W = dr.select(phat_sel > 0, w_sum / (m0 * dr.select(phat_sel > 0, phat_sel, 1.0)), 0.0)  # (R5)
         r.shape, r.prim, r.prim_uv = pi.shape_index, pi.prim_index, pi.prim_uv
-        r.o, r.d, r.t = ray.o, ray.d, pi.t
+        r.o, r.d, r.t, r.offset = ray.o, ray.d, pi.t, offset
         r.p, r.n, r.valid = si.p, mi.Vector3f(si.sh_frame.n), valid
         dr.eval(r, f_sel, phat_sel, le_vis, ray_weight)
         t1 = tic("ris", t0)
 
-        n_ok = None
+        n_ok, cap = None, self.m_cap
         if source != "none":
             src = prev if source == "temporal" else r
             exclude_self = source == "spatial"
             # screen window per query: ceil(radius / its pixel footprint), at most layout.window
             footprint = pi.t * dr.norm(ray.d_x - ray.d)
             windows = mi.UInt32(dr.clip(dr.ceil(radius / dr.select(footprint > 0, footprint, radius)), 1, 3))
-            if buckets is not None:  # the store (multiview="carry_over"): reprojected to this film
+            if keep_offsets and not self.spatial:  # the lane's own chain (a search could pick a neighbour's)
+                d = src.p - r.p
+                # a redrawn lane starts afresh: reused at its new shading point, a long memory
+                # counts in Z (R8) where its sample is hidden, darkening or brightening the lane for
+                # many steps (measured: worse than a fresh start)
+                nbr, ok = [lane], [keep & r.valid & src.valid & (dr.dot(d, d) < radius * radius)]
+                cap = self.chain_cap
+                self._neighbour_search.last = "lane"
+            elif buckets is not None:  # the store (multiview="carry_over"): reprojected to this film
                 nbr, ok = _knn.knn_in_buckets(src.p, buckets, r.p, w, h, spp, k, radius, windows)
                 ok = [o & r.valid for o in ok]
                 self._neighbour_search.last = "reprojected"
@@ -477,7 +531,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                 ok[i] = ok[i] & (dr.dot(n_src, r.n) >= self.normal_threshold)
             dr.eval(nbr, ok)
             t2 = tic("nn", t1)
-            r, f_sel, phat_sel, n_ok = self._combine(scene, sampler, si, r, f_sel, phat_sel, src, nbr, ok)
+            r, f_sel, phat_sel, n_ok = self._combine(scene, sampler, si, r, f_sel, phat_sel, src, nbr, ok, cap)
             dr.eval(r, f_sel, n_ok)
             t1 = tic("combine", t2)
         contrib = ray_weight * (le_vis + f_sel * r.W)  # (R16)
@@ -526,10 +580,11 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         w0 = dr.select(_visible(scene, si, y0, valid & (w0 > 0)), w0, 0.0)  # V = 0: no gradient
         return y, f_sel, phat_sel, w_sum, (y0, w0)
 
-    def _combine(self, scene, sampler, si, r, f_sel, phat_sel, source, nbr, ok):
-        """Bitterli's unbiased 1/Z combination with M capping (R6-R9; corrects Alg. P3, D1)."""
+    def _combine(self, scene, sampler, si, r, f_sel, phat_sel, source, nbr, ok, m_cap: float):
+        """Bitterli's unbiased 1/Z combination with M capping at ``m_cap`` (R6-R9; corrects
+        Alg. P3, D1)."""
         valid = r.valid  # si: the lanes' own shading points (the pass's first hits)
-        cap = mi.Float(self.m_cap)
+        cap = mi.Float(m_cap)
         # w_0 = p̂(y_0) W_0 M_0 (R6): r_0.w_sum for a fresh RIS reservoir, and also right for an
         # already combined one, whose w_sum is not M p̂ W (measured: reusing w_sum there made W
         # grow without bound)
@@ -650,13 +705,17 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     def load_state_dict(self, state: dict) -> None:
         self.reset()
         for sensor, d in state.items():
-            prev = None if d["reservoirs"] is None else _struct_from_numpy(Reservoirs(), d["reservoirs"])
+            data = d["reservoirs"]
+            if data is not None and "offset" not in data:  # older checkpoints: offsets are redrawn
+                data = {**data, "offset": np.full((len(data["W"]), 2), np.nan, np.float32)}
+            prev = None if data is None else _struct_from_numpy(Reservoirs(), data)
             camera = d.get("camera")  # absent in older checkpoints: the first step searches in world space
             self.states[int(sensor)] = SensorState(
                 prev=prev, radius=float(d["radius"]), window=int(d.get("window", 2)), steps=int(d["steps"]),
                 signature=tuple(d["signature"]),
                 camera=None if camera is None else (tuple(camera[0]), *(int(v) for v in camera[1:])),
                 lights=as_tuples(d.get("lights")),  # absent: the first step does not reuse
+                geometry=LOADED,
             )
 
     def to_string(self) -> str:
@@ -732,19 +791,24 @@ def _sensor(scene: mi.Scene, sensor) -> tuple[int, mi.Sensor]:
     raise ValueError("the sensor does not belong to the scene")
 
 
-def _sample_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, w: int, h: int):
-    """Camera rays, ``spp`` consecutive lanes per pixel, row-major (as Mitsuba's ``sample_rays``
-    with a box filter)."""
+def _sample_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, w: int, h: int, kept: mi.Point2f | None = None,
+                 keep: mi.Bool | None = None):
+    """``(rays, weights, offsets)``: camera rays, ``spp`` consecutive lanes per pixel, row-major
+    (as Mitsuba's ``sample_rays`` with a box filter); ``offsets`` are their positions in the
+    pixel, fresh from ``sampler`` except ``kept`` where ``keep``."""
     idx = dr.arange(mi.UInt32, w * h * spp) // spp
     pos = mi.Vector2u(idx % w, idx // w)
+    offset = sampler.next_2d()
+    if kept is not None:
+        offset = dr.select(keep, kept, offset)
     # sample2 of sample_ray is relative to the film crop (as in Mitsuba's sample_rays)
-    pos_adj = (mi.Vector2f(pos) + sampler.next_2d()) * dr.rcp(mi.ScalarVector2f(w, h))
+    pos_adj = (mi.Vector2f(pos) + offset) * dr.rcp(mi.ScalarVector2f(w, h))
     aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
     t = sensor.shutter_open()
     if sensor.shutter_open_time() > 0:
         t += sampler.next_1d() * sensor.shutter_open_time()
     ray, weight = sensor.sample_ray_differential(time=t, sample1=0.0, sample2=pos_adj, sample3=aperture)
-    return ray, mi.Color3f(weight)
+    return ray, mi.Color3f(weight), offset
 
 
 def _footprints(scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int, w: int, h: int) -> tuple[float, float]:
@@ -755,7 +819,7 @@ def _footprints(scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int, w: int,
         sampler.set_sample_count(spp)
         sampler.set_samples_per_wavefront(spp)
         sampler.seed(seed, w * h * spp)
-        ray, _ = _sample_rays(sensor, sampler, spp, w, h)
+        ray, _, _ = _sample_rays(sensor, sampler, spp, w, h)
         pi = scene.ray_intersect_preliminary(mi.Ray3f(ray), coherent=True)
         fp = pi.t * dr.norm(ray.d_x - ray.d)
         vals = np.asarray(dr.gather(mi.Float, fp, dr.compress(pi.is_valid() & dr.isfinite(fp))))

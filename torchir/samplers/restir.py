@@ -12,6 +12,11 @@ Presets (one flag for the paper's equal-time comparisons, spec §6.3):
 ``preset``         meaning
 =================  ====================================================================
 ``"restir"``       the options as given (default: spatiotemporal reuse, shared paths)
+``"persistent"``   temporal reuse of each camera sample's own reservoir at a kept shading
+                   point: ``spatial=False``, ``offset_lifetime=512`` unless given, the
+                   chain's M capped at 64 x ``candidates``, per-sensor chains. For
+                   light-bound scenes whose texels span several pixels (each sample
+                   point stays put for ~512 steps)
 ``"b1"``           B.1: one light sample per camera ray, no reuse (``candidates=1``)
 ``"b2"``           B.2: streaming RIS with ``candidates``, no reuse
 ``"forward_only"`` ablation: reuse for the image, plain RIS for the gradient
@@ -26,7 +31,8 @@ from ..scene import Scene, is_geometry_key
 
 __all__ = ["ReSTIRSampler"]
 
-_PRESETS = ("restir", "b1", "b2", "forward_only")
+_PRESETS = ("restir", "persistent", "b1", "b2", "forward_only")
+PERSISTENT_LIFETIME = 512.0  # preset "persistent": mean steps a lane keeps its camera offset
 
 
 class ReSTIRSampler:
@@ -39,8 +45,10 @@ class ReSTIRSampler:
         neighbors: k, reservoirs of the previous step combined per camera sample (8 and 16
             candidates: the lowest error x time of k in 2-16, M in 8-16 at 128², README).
         radius: neighbour search radius in world units (``None``: 2 pixel footprints).
-        m_cap: cap on M (``None``: 2 * candidates; spec D2's 20 * candidates measured worse:
-            one sample spreads over many pixels, see ``scripts/sweep_restir.py``).
+        m_cap: cap on M (``None``: 2 * candidates for searched neighbours, 64 * candidates
+            for a lane's own chain; spec D2's 20 * candidates measured worse with searched
+            neighbours: a moved shading point can hide a long memory's sample, see
+            ``integrators/restir_di.py`` and ``scripts/sweep_restir.py``).
         temporal, spatial: reuse switches (both: the paper's spatiotemporal reuse of the
             previous step; neither: plain RIS).
         burn_in: forward-only reuse passes before a sensor's first step.
@@ -52,7 +60,8 @@ class ReSTIRSampler:
             (the previous step's samples in the surrounding pixels; a sensor that has not moved).
         seed: mixed into every render seed (0: the render seed is used as is).
         normal_threshold: neighbours with ``n . n' <`` this are dropped.
-        preset: ``"restir"`` | ``"b1"`` | ``"b2"`` | ``"forward_only"`` (table above).
+        preset: ``"restir"`` | ``"persistent"`` | ``"b1"`` | ``"b2"`` | ``"forward_only"`` (table
+            above).
         target: ``"shadowed"`` (p̂ includes visibility: a shadow ray per candidate and per
             neighbour; the paper) or ``"unshadowed"`` (Bitterli's unbiased variant: one shadow
             ray for the chosen sample, W = 0 when it is occluded; the support test keeps its rays).
@@ -73,6 +82,12 @@ class ReSTIRSampler:
             the screen search scans ``spp`` times fewer samples). Measured at 128², 4 spp
             against one search over every sample: gradient error 0.028 vs 0.038 (``oxalis_lite``)
             and 0.029 vs 0.031 (``ajar_painting``) at 0.66x and 0.59x the step time.
+        offset_lifetime: steps a camera sample keeps its position in the pixel, on average
+            (``None`` or 0: a new one every step; ``float("inf")``: until the sensor or the
+            geometry changes). Each step's positions stay uniform, so every step is unbiased;
+            but the points a step samples persist, so texels narrower than the pixel spacing
+            may get no gradient for that long. With temporal reuse alone, a kept sample
+            resamples with its own previous reservoir, at the same shading point.
 
     Example:
         >>> scene = torchir.Scene.builtin("oxalis_lite", resolution=32)
@@ -101,6 +116,7 @@ class ReSTIRSampler:
         freeze: bool | None = None,
         multiview: str = "auto",
         spp_chains: bool = True,
+        offset_lifetime: float | None = None,
     ) -> None:
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a torchir.Scene, got {type(scene).__name__}")
@@ -111,6 +127,9 @@ class ReSTIRSampler:
         forward_only = preset == "forward_only"
         if preset == "b1":
             candidates, temporal, spatial, burn_in = 1, False, False, 0
+        elif preset == "persistent":  # each sensor its own chains: a carried-over store has no lanes to keep
+            spatial, multiview = False, "per_sensor" if multiview == "auto" else multiview
+            offset_lifetime = PERSISTENT_LIFETIME if offset_lifetime is None else offset_lifetime
         elif preset == "b2":
             temporal, spatial, burn_in = False, False, 0
         from .. import backend
@@ -137,6 +156,7 @@ class ReSTIRSampler:
             freeze=backend.frozen_renders() if freeze is None else bool(freeze),
             multiview=multiview,
             spp_chains=spp_chains,
+            offset_lifetime=offset_lifetime,
         )
 
     # ------------------------------------------------------------------ used by render()
