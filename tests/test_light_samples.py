@@ -125,8 +125,9 @@ def test_struct_types():
     ls, res = _light.LightSample(), _light.Reservoirs()
     assert ls.DRJIT_STRUCT == {"em": mi.UInt32, "p": mi.Point3f, "n": mi.Vector3f, "uv": mi.Point2f, "delta": mi.Bool}
     assert res.DRJIT_STRUCT["y"] is ls
-    assert list(res.DRJIT_STRUCT) == ["y", "W", "M", "w_sum", "shape", "prim", "prim_uv", "o", "d", "t", "p", "n",
-                                      "valid"]
+    assert list(res.DRJIT_STRUCT) == ["y", "W", "M", "w_sum", "shape", "prim", "prim_uv", "o", "d", "t", "offset", "p",
+                                      "n", "valid"]
+    assert res.DRJIT_STRUCT["offset"] is mi.Point2f
     assert [res.DRJIT_STRUCT[k] for k in ("W", "M", "w_sum", "t")] == [mi.Float] * 4
     assert [res.DRJIT_STRUCT[k] for k in ("shape", "prim")] == [mi.UInt32] * 2
     assert res.DRJIT_STRUCT["prim_uv"] is mi.Point2f and res.DRJIT_STRUCT["valid"] is mi.Bool
