@@ -1007,7 +1007,7 @@ def test_freeze_follows_torchirs_switch_and_falls_back_loudly(oxalis):
     def broken(*args, **kwargs):
         raise RuntimeError("recording failed")
 
-    r.integrator._frozen_pass_ready = lambda scene: True
+    r.integrator._frozen_pass_ready = lambda scene, geometry: True
     r.integrator._frozen_pass = broken
     with pytest.warns(UserWarning, match=r"frozen ReSTIR pass failed \(RuntimeError\('recording failed'\)\); this integrator now runs unfrozen"):
         img = render(oxalis, {}, spp=1, seed=0, sampler=r)

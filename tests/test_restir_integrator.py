@@ -684,7 +684,7 @@ def test_a_failing_frozen_pass_falls_back_loudly(point, monkeypatch):
         attempts.append(args)
         raise RuntimeError("replay failed")
 
-    def ready(scene):
+    def ready(scene, geometry):
         i._frozen_pass = broken
         return True
 

@@ -398,7 +398,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                         and geometry == st.geometry)
         freeze = self.freeze and (source == "none" or reproject or (layout is not None and self.nn_backend in ("auto", "screen")))
         if freeze:
-            freeze = self._frozen_pass_ready(scene)
+            freeze = self._frozen_pass_ready(scene, geometry)
         stats = PassStats(camera=camera, k=k if source != "none" else 0, geometry=geometry)
         # the store's points bucketed by their pixel in this film (traced: see bucket_by_pixel)
         buckets = _knn.bucket_by_pixel(*project(sensor_obj, prev), w * h) if reproject else None
@@ -425,14 +425,13 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.last_pass_frozen = freeze
         return (ray_weight, image), r, stats
 
-    def _frozen_pass_ready(self, scene: mi.Scene) -> bool:
-        """Whether the frozen pass may run now. A replay reuses the acceleration structure it
+    def _frozen_pass_ready(self, scene: mi.Scene, now: tuple) -> bool:
+        """Whether the frozen pass may run now, with the scene's geometry ``now`` (GeometryWatch). A replay reuses the acceleration structure it
         was recorded with, so once geometry changes (a mesh's vertices, a shape's transform)
         the steps run unfrozen; after a step with unchanged geometry the pass is recorded
         anew. Vertices bound by each render (shape optimisation) are a new variable every
         step, so such runs stay unfrozen. (Measured: a frozen pass replayed after a vertex
         edit rendered 0.)"""
-        now = self._geometry_watch(scene)
         steady = self._geometry_seen is None or now == self._geometry_seen
         self._geometry_seen = now
         if self._frozen_pass is not None and now == self._geometry_frozen:
