@@ -10,10 +10,13 @@ import pytest
 
 from torchir.bench import SUITES
 from torchir.bench.restir import (
-    BASELINES, METHODS, ORACLE, ORACLE_LOW, RESTIRS, camera_floor, equal_time_spp, parse_args, resolve_scenes, summarize_scene, tables,
+    ALL_RESTIRS, BASELINES, ORACLE, ORACLE_LOW, bracketing_spps, camera_floor, equal_time_error, equal_time_spp, methods_in, parse_args,
+    resolve_scenes, restir_variants, summarize_scene, tables,
 )
 
 QUICK_SCENE = "oxalis_lite"  # always built in; the default quick scene (ajar_painting) may change under other work
+QUICK_RESTIRS = ("ReSTIR (shadowed)", "ReSTIR (persistent)")  # two of the three: the budget goes to the slower
+METHODS = (*BASELINES, *QUICK_RESTIRS)
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +24,7 @@ def quick(tmp_path_factory):
     from torchir.bench.restir import main
 
     out = tmp_path_factory.mktemp("bench_restir")
-    main(["--quick", "--scenes", QUICK_SCENE, "--out", str(out)])
+    main(["--quick", "--scenes", QUICK_SCENE, "--restirs", "shadowed,persistent", "--out", str(out)])
     return out, json.loads((out / "results.json").read_text())
 
 
@@ -62,7 +65,7 @@ def test_quick_run_numbers_are_sane(quick):
             assert _finite(r[field]) and r[field] >= 0, (m, field, r[field])
         assert r["relerr_equal_samples"] > 0 and r["seconds_per_step"] > 0 and r["recon_steps"] >= 1
         assert r["recon_rmse"] < 1.0  # a texture in [0, 1]
-    for m in RESTIRS:  # a frozen pass (dr.freeze) has one timer, "pass"; then an unfrozen run gives the stages
+    for m in QUICK_RESTIRS:  # a frozen pass (dr.freeze) has one timer, "pass"; then an unfrozen run gives the stages
         assert rows[m]["burn_in_seconds"] > 0 and "backward" in rows[m]["stages"] and _finite(rows[m]["bound"])
         stages = {**rows[m]["stages"], **scene["unfrozen_stages"].get(f"{m}, unfrozen", {}).get("stages", {})}
         assert {"ris", "nn", "combine", "backward"} <= set(stages) and all(_finite(v) and v >= 0 for v in stages.values())
@@ -110,7 +113,7 @@ def test_quick_run_gain_and_bound_columns_match_the_errors(quick):
         assert r["gain"] == pytest.approx(e_best / r["relerr_equal_time"])
         assert r["light"] == pytest.approx(math.sqrt(max(r["relerr_equal_samples"] ** 2 - r["floor"] ** 2, 0.0)))
         assert r["relerr_equal_samples"] ** 2 == pytest.approx(r["floor"] ** 2 + r["light"] ** 2) or r["light"] == 0.0
-    for m in RESTIRS:
+    for m in QUICK_RESTIRS:
         r = rows[m]
         floor_eq = scene["floors"][str(r["spp_equal_time"])]
         assert r["bound"] == pytest.approx(e_best / floor_eq)
@@ -169,6 +172,37 @@ def test_summary_splits_floor_and_light_and_reads_gain_of_possible():
     assert len({line.count("|") for line in text.splitlines() if line.startswith("| ReSTIR (shadowed) |")}) == 3  # 3 tables
     below = summarize_scene([*runs[:-2], _run(ORACLE, 1, [0.06, 0.06]), _run(ORACLE, 2, [0.03, 0.03])], 1, spp_eq)
     assert below["rows"]["ReSTIR (shadowed)"]["light"] == 0.0  # an error under the floor: no light part, not NaN
+
+
+def test_equal_time_error_reads_the_effective_sample_count_at_the_budget():
+    """Variance 0.04 / spp and a step of 0.1 s + 0.05 s per spp: 1 / e² is linear in time, so the
+    error at any budget between (or beyond) two runs is exact."""
+    def run(spp: int) -> tuple[float, float]:
+        return 0.1 + 0.05 * spp, math.sqrt(0.04 / spp)
+
+    pts = [run(1), run(3)]
+    assert equal_time_error(pts, 0.2) == pytest.approx(run(2)[1])  # between the runs
+    assert equal_time_error(pts, 0.35) == pytest.approx(run(5)[1])  # beyond them, along their line
+    assert equal_time_error(pts, 0.1) == pts[0][1]  # below every run: the fastest (it had more time)
+    assert equal_time_error([(0.2, 0.1)], 0.4) == pytest.approx(0.1 / math.sqrt(2))  # one run: proportional to time
+    assert equal_time_error([], 0.4) == 0.0
+    assert bracketing_spps(1.4, 1, 256) == (1, 2) and bracketing_spps(3.0, 1, 256) == (3,)
+    assert bracketing_spps(0.4, 1, 256) == (1,) and bracketing_spps(300.5, 1, 256) == (256,)
+
+
+def test_summary_reads_baselines_at_exactly_the_budget():
+    """A baseline run at 1 and 2 spp (0.1 s and 0.2 s) against a 0.15 s budget: its error is read
+    at 1.5 spp, not at the rounded spp, which would give it a third more or less time."""
+    spp_eq = {"direct": 2, "B.1": 2, "B.2": 2, "ReSTIR (shadowed)": 1, "ReSTIR (unshadowed)": 1, "ReSTIR (persistent)": 1}
+    runs = [_run(m, s, [e / math.sqrt(s)] * 2, 0.1 * s) for m, e in (("direct", 0.5), ("B.1", 0.6), ("B.2", 0.3)) for s in (1, 2)]
+    runs += [_run(m, 1, [0.05, 0.05], 0.15) for m in ALL_RESTIRS] + [_run(ORACLE, 1, [0.04, 0.04])]
+    rows = summarize_scene(runs, 1, spp_eq, budget=0.15)["rows"]
+    assert rows["B.2"]["relerr_equal_time"] == pytest.approx(0.3 / math.sqrt(1.5))
+    assert rows["B.2"]["relerr_equal_time_measured"] == pytest.approx(0.3 / math.sqrt(2))
+    assert rows["B.2"]["seconds_equal_time"] == 0.15 and rows["ReSTIR (shadowed)"]["relerr_equal_time"] == 0.05
+    assert rows["ReSTIR (persistent)"]["gain"] == pytest.approx(0.3 / math.sqrt(1.5) / 0.05)
+    unread = summarize_scene(runs, 1, spp_eq)["rows"]  # without a budget: the run at the rounded spp
+    assert unread["B.2"]["relerr_equal_time"] == pytest.approx(0.3 / math.sqrt(2))
 
 
 def test_equal_time_spp_line_through_the_probes_and_limits():
@@ -243,19 +277,27 @@ def test_views_bench_tiny_run(tmp_path):
 
 
 def test_restir_variants_can_be_run_alone():
-    """``--restirs persistent``: the variant alone, so its own cost sets the equal-time budget."""
+    """``--restirs persistent``: the variant alone, so its own cost sets the equal-time budget;
+    summaries and tables follow the variants a run has, whatever the module constants list."""
     from torchir.bench import restir as bench
 
-    assert parse_args([]).restirs == ["shadowed", "unshadowed", "persistent"]
-    assert parse_args(["--restirs", "persistent"]).restirs == ["persistent"]
+    assert parse_args([]).restirs == ["shadowed", "unshadowed", "persistent"] and parse_args([]).restir_methods == ALL_RESTIRS
+    alone = parse_args(["--restirs", "persistent"])
+    assert alone.restir_methods == ("ReSTIR (persistent)",) and alone.methods == (*BASELINES, "ReSTIR (persistent)")
+    assert restir_variants(["persistent", "shadowed"]) == ("ReSTIR (shadowed)", "ReSTIR (persistent)")  # table order
     with pytest.raises(SystemExit):
         parse_args(["--restirs", "fast"])
-    try:
-        bench.select_restirs(["persistent"])
-        assert bench.RESTIRS == ("ReSTIR (persistent)",) and bench.METHODS == (*BASELINES, "ReSTIR (persistent)")
-        assert bench.sampler_options("ReSTIR (persistent)", parse_args([]))["preset"] == "persistent"
-        with pytest.raises(ValueError):
-            bench.select_restirs(["persistent", "fast"])
-    finally:
-        bench.select_restirs(["shadowed", "unshadowed", "persistent"])
-    assert bench.RESTIRS == bench.ALL_RESTIRS
+    with pytest.raises(ValueError, match="--restirs takes some of shadowed, unshadowed, persistent"):
+        restir_variants(["persistent", "fast"])
+    assert bench.sampler_options("ReSTIR (persistent)", alone)["preset"] == "persistent"
+    spp_eq = {"direct": 2, "B.1": 2, "B.2": 2, "ReSTIR (persistent)": 1}
+    runs = [_run(m, s, [0.3 / math.sqrt(s)] * 2, 0.1 * s) for m in BASELINES for s in (1, 2)]
+    runs += [_run("ReSTIR (persistent)", 1, [0.05, 0.05], 0.15), _run(ORACLE, 1, [0.04, 0.04])]
+    summary = summarize_scene(runs, 1, spp_eq, budget=0.15)
+    assert set(summary["rows"]) == {*BASELINES, "ReSTIR (persistent)", ORACLE}
+    assert methods_in(summary["rows"]) == ((*BASELINES, "ReSTIR (persistent)"), ("ReSTIR (persistent)",))
+    text = tables({"config": {"spp": 1, "resolution": 32, "candidates": 8, "burn_in": 8, "oracle_candidates": 256, "grad_steps": 2,
+                              "ref_spp": 64, "lr": 0.02, "recon_steps": 3, "recon_seeds": 1, "grad_paths": ["shared"]},
+                   "scenes": {"demo": {**summary, "reference": {"relative_se": 0.001},
+                                       "calibration": {"budget_seconds": 0.15, "budget_method": "ReSTIR (persistent)"}}}})
+    assert "| ReSTIR (persistent) |" in text and "ReSTIR (shadowed)" not in text

@@ -11,7 +11,7 @@ Methods (every one recovers the scene's albedo texture, ``torchir.scenes.get(nam
   step's reservoirs, ``target="shadowed"`` (p̂ includes visibility, the paper) or
   ``"unshadowed"`` (one shadow ray for the chosen sample);
 * **ReSTIR (persistent)**: ``preset="persistent"``: every camera sample keeps its offset in the
-  pixel (redrawn every 512 steps on average) and resamples with its own previous reservoir
+  pixel (redrawn every 2048 steps on average) and resamples with its own previous reservoir
   (temporal reuse at the same shading point, M capped at 64 x candidates), no spatial reuse;
 * **floor**: the oracle of spec §5.1, RIS over ``--oracle-candidates`` (256) shadowed
   candidates, no reuse, at the same seeds and spp as the method: the camera rays of a
@@ -33,8 +33,12 @@ Experiments, per scene (``--scenes``):
   burn-in charged (``step + burn-in / grad_steps``: the burn-in is spent to produce these
   ``grad_steps`` gradients). The budget comes from the equal-samples runs; each other method's
   spp from up to ``--cal-rounds`` timing probes (interpolated between the probes around the
-  budget: step time is not proportional to spp). The table shows the seconds per step the
-  equal-time runs actually took. The runs of each group step in lockstep (interleaved), so
+  budget: step time is not proportional to spp). Each baseline then runs at the whole spps
+  on either side of that estimate and its error is read at exactly the budget (``1/e²``, the
+  effective sample count, linear in time between the two runs): rounding to a whole spp
+  would favour one side by up to a sample per pixel, which at 1-2 spp is a large share. The
+  table shows the seconds per step of the ReSTIR runs as they took them and the budget for
+  the baselines. The runs of each group step in lockstep (interleaved), so
   load drift hits every method alike.
 * **Reconstruction at equal wall time, through the trainer** (spec T-B2): a real
   ``InverseRenderingModule`` + ``ViewDataModule`` + ``lightning.pytorch.Trainer`` run per method
@@ -78,23 +82,32 @@ from typing import Any
 
 from torchir.bench import combined
 
-__all__ = ["ALL_RESTIRS", "BASELINES", "METHODS", "ORACLE", "ORACLE_LOW", "RESTIRS", "camera_floor", "select_restirs", "main", "parse_args", "plot_results", "summarize_scene", "tables"]
+__all__ = ["ALL_RESTIRS", "BASELINES", "METHODS", "ORACLE", "ORACLE_LOW", "bracketing_spps", "camera_floor", "equal_time_error",
+           "main", "methods_in", "parse_args", "plot_results", "restir_variants", "summarize_scene", "tables"]
 
 DEFAULT_SCENES = ("ajar_painting", "many_lights", "oxalis_lite")
 BASELINES = ("direct", "B.1", "B.2")
 ALL_RESTIRS = ("ReSTIR (shadowed)", "ReSTIR (unshadowed)", "ReSTIR (persistent)")
-RESTIRS = ALL_RESTIRS  # the variants of this run (select_restirs)
-METHODS = (*BASELINES, *RESTIRS)
+METHODS = (*BASELINES, *ALL_RESTIRS)  # every method; a run's own are ``a.methods`` (--restirs)
+VARIANTS = {m[len("ReSTIR ("):-1]: m for m in ALL_RESTIRS}  # "shadowed" -> "ReSTIR (shadowed)"
 
 
-def select_restirs(names: Sequence[str]) -> None:
-    """Run the ReSTIR variants ``names`` ("shadowed", "unshadowed", "persistent") only: the
-    slowest of them sets the equal-time budget, so one variant alone is compared at its own cost."""
-    global RESTIRS, METHODS
-    chosen = tuple(m for m in ALL_RESTIRS if m[len("ReSTIR ("):-1] in names)
-    if not chosen or len(chosen) != len(set(names)):
-        raise ValueError(f"--restirs takes some of shadowed, unshadowed, persistent; got {','.join(names)}")
-    RESTIRS, METHODS = chosen, (*BASELINES, *chosen)
+def restir_variants(names: Sequence[str]) -> tuple[str, ...]:
+    """The ReSTIR methods named ``names`` ("shadowed", "unshadowed", "persistent"), in table
+    order. The slowest of a run's variants sets the equal-time budget, so one variant alone is
+    compared at its own cost."""
+    unknown = [n for n in names if n not in VARIANTS]
+    if unknown or not names:
+        raise ValueError(f"--restirs takes some of {', '.join(VARIANTS)}; got {','.join(names)}")
+    return tuple(m for m in ALL_RESTIRS if m[len("ReSTIR ("):-1] in names)
+
+
+def methods_in(methods: Any) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """``(methods, ReSTIR variants)`` present in ``methods`` (method names, e.g. a summary's
+    rows or a list of runs' methods), in table order: the baselines, then the variants run."""
+    present = set(methods)
+    restirs = tuple(m for m in ALL_RESTIRS if m in present)
+    return (*BASELINES, *restirs), restirs
 ORACLE = "floor (oracle)"  # RIS over the larger --oracle-candidates count
 ORACLE_LOW = "oracle (fewer candidates)"  # the smaller count: with ORACLE, extrapolates the floor
 STAGES = ("pass", "ris", "nn", "combine", "develop", "backward")  # "pass": a frozen (dr.freeze) pass has one timer
@@ -161,8 +174,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     if a.ref_spp < 4:
         p.error("--ref-spp must be >= 4 (four reference batches)")
     a.restirs = [v.strip() for v in a.restirs.split(",") if v.strip()]
-    if not a.restirs or any(v not in ("shadowed", "unshadowed", "persistent") for v in a.restirs):
-        p.error("--restirs takes some of shadowed, unshadowed, persistent")
+    try:
+        a.restir_methods = restir_variants(a.restirs)
+    except ValueError as error:
+        p.error(str(error))
+    a.methods = (*BASELINES, *a.restir_methods)
     return a
 
 
@@ -197,7 +213,7 @@ def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None
         return {"preset": "b2", "candidates": a.oracle_low}
     if method == "ReSTIR (persistent)":
         return {"preset": "persistent", "candidates": a.candidates, "burn_in": a.burn_in}
-    if method in RESTIRS:
+    if method in ALL_RESTIRS:
         target = "unshadowed" if "unshadowed" in method else "shadowed"
         return {"candidates": a.candidates, "burn_in": a.burn_in, "target": target, "nn_backend": a.nn_backend}
     raise ValueError(f"unknown method {method!r}")
@@ -292,8 +308,11 @@ def camera_floor(e_low: float | None, m_low: int | None, e_high: float, m_high: 
 
 def warm_up(problem: Problem, a: argparse.Namespace) -> None:
     """Compile every method's kernels (and the burn-in's) before anything is timed."""
-    for method in (*METHODS, *oracles(a)):
-        problem.step(problem.sampler(method, a, burn_in=1), a.spp, 90_000)  # burn-in pass, then a reuse step
+    for method in (*a.methods, *oracles(a)):
+        # a burn-in pass, then a reuse step; lane chains burn in with one pass over all the
+        # burn-in's candidates, a kernel of its own: compiled here at the real count
+        burn_in = a.burn_in if method == "ReSTIR (persistent)" else 1
+        problem.step(problem.sampler(method, a, burn_in=burn_in), a.spp, 90_000)
 
 
 def probe(problem: Problem, method: str, spp: int, a: argparse.Namespace, seed0: int) -> dict[str, float]:
@@ -313,13 +332,13 @@ def probe(problem: Problem, method: str, spp: int, a: argparse.Namespace, seed0:
     return {"spp": spp, "step": step, "burn_in": burn_in, "charged": step + burn_in / a.grad_steps}
 
 
-def equal_time_spp(probes: list[dict[str, float]], budget: float, spp: int, max_spp: int) -> int:
-    """The spp whose charged seconds per step meet ``budget``, within [spp, max_spp]: linear
-    interpolation between the probes that bracket the budget, else the secant through the two
-    probes nearest to it (step time is not proportional to spp: fixed costs per step, frozen
+def equal_time_estimate(probes: list[dict[str, float]], budget: float, spp: int, max_spp: int) -> float:
+    """The (fractional) spp whose charged seconds per step meet ``budget``, within [spp, max_spp]:
+    linear interpolation between the probes that bracket the budget, else the secant through the
+    two probes nearest to it (step time is not proportional to spp: fixed costs per step, frozen
     kernels that change with the lane count), else proportional from the nearest probe."""
     if probes[0]["charged"] >= budget:
-        return spp
+        return float(spp)
     below = [q for q in probes if q["charged"] < budget]
     above = [q for q in probes if q["charged"] >= budget]
     near = min(probes, key=lambda q: abs(q["charged"] - budget))
@@ -333,7 +352,44 @@ def equal_time_spp(probes: list[dict[str, float]], budget: float, spp: int, max_
     if pair is not None and pair[1]["spp"] > pair[0]["spp"] and pair[1]["charged"] > pair[0]["charged"]:
         lo, hi = pair
         estimate = lo["spp"] + (budget - lo["charged"]) * (hi["spp"] - lo["spp"]) / (hi["charged"] - lo["charged"])
-    return int(min(max_spp, max(spp, round(estimate))))
+    return float(min(max_spp, max(spp, estimate)))
+
+
+def equal_time_spp(probes: list[dict[str, float]], budget: float, spp: int, max_spp: int) -> int:
+    """:func:`equal_time_estimate` rounded to a whole spp."""
+    return int(round(equal_time_estimate(probes, budget, spp, max_spp)))
+
+
+def bracketing_spps(estimate: float, spp: int, max_spp: int) -> tuple[int, ...]:
+    """The whole spps around a fractional equal-time ``estimate`` (one when it is whole or at a limit)."""
+    lo = min(max_spp, max(spp, math.floor(estimate)))
+    hi = min(max_spp, max(spp, math.ceil(estimate)))
+    return (lo,) if lo == hi else (lo, hi)
+
+
+def equal_time_error(points: Sequence[tuple[float, float]], budget: float) -> float:
+    """A method's gradient error at exactly ``budget`` charged seconds per step, from its runs
+    ``points`` = ``[(charged seconds per step, relerr)]`` at whole spps. ``1 / e²`` (the
+    effective sample count) is linear in time when the variance falls as 1/spp and the step
+    time is affine in spp, so it is interpolated linearly between the runs that bracket the
+    budget. A budget below every run's time gives the fastest run's error (the method had more
+    time: the comparison favours it); above every run's, ``1 / e²`` is extended along the last
+    two runs' line, or proportionally to time from the last run."""
+    pts = sorted((t, e) for t, e in points if e > 0)
+    if not pts:
+        return 0.0
+    if budget <= pts[0][0]:
+        return pts[0][1]
+    inv = [(t, 1.0 / (e * e)) for t, e in pts]
+    for (t0, v0), (t1, v1) in zip(inv, inv[1:]):
+        if t0 <= budget <= t1 and t1 > t0:
+            return (v0 + (budget - t0) * (v1 - v0) / (t1 - t0)) ** -0.5
+    t1, v1 = inv[-1]
+    if len(inv) > 1:
+        t0, v0 = inv[-2]
+        if t1 > t0 and v1 > v0:
+            return (v1 + (budget - t1) * (v1 - v0) / (t1 - t0)) ** -0.5
+    return (v1 * budget / t1) ** -0.5
 
 
 def calibrate(problem: Problem, a: argparse.Namespace, equal_samples: list[dict[str, Any]]) -> dict[str, Any]:
@@ -343,12 +399,12 @@ def calibrate(problem: Problem, a: argparse.Namespace, equal_samples: list[dict[
     and gets up to ``cal_rounds`` probes, each at the spp the probes so far point to."""
     runs = {r["method"]: r for r in equal_samples if r["spp"] == a.spp}
     first = {m: {"spp": a.spp, "step": runs[m]["seconds_per_step"], "burn_in": runs[m]["burn_in_seconds"],
-                 "charged": runs[m]["charged_seconds_per_step"]} for m in METHODS}
-    owner = max(RESTIRS, key=lambda m: first[m]["charged"])
+                 "charged": runs[m]["charged_seconds_per_step"]} for m in a.methods}
+    owner = max(a.restir_methods, key=lambda m: first[m]["charged"])
     budget = first[owner]["charged"]
-    probes = {m: [first[m]] for m in METHODS}
-    spp_eq = {owner: a.spp}
-    for m in METHODS:
+    probes = {m: [first[m]] for m in a.methods}
+    spp_eq, exact = {owner: a.spp}, {owner: float(a.spp)}
+    for m in a.methods:
         if m == owner:
             continue
         spp_eq[m] = equal_time_spp(probes[m], budget, a.spp, a.max_spp)
@@ -357,7 +413,9 @@ def calibrate(problem: Problem, a: argparse.Namespace, equal_samples: list[dict[
                 break
             probes[m].append(probe(problem, m, spp_eq[m], a, 30_000 + 100 * round_))
             spp_eq[m] = equal_time_spp(probes[m], budget, a.spp, a.max_spp)
-    return {"budget_method": owner, "budget_seconds": budget, "equal_time_spp": {m: spp_eq[m] for m in METHODS}, "probes": probes}
+        exact[m] = equal_time_estimate(probes[m], budget, a.spp, a.max_spp)
+    return {"budget_method": owner, "budget_seconds": budget, "equal_time_spp": {m: spp_eq[m] for m in a.methods},
+            "equal_time_spp_exact": {m: exact[m] for m in a.methods}, "probes": probes}
 
 
 def _freezes() -> bool:
@@ -376,7 +434,7 @@ def stage_breakdown(problem: Problem, a: argparse.Namespace) -> dict[str, dict[s
     if not _freezes():
         return {}
     out = {}
-    for m in ("B.2", *RESTIRS):
+    for m in ("B.2", *a.restir_methods):
         sampler = problem.sampler(m, a, burn_in=min(a.burn_in, 2), freeze=False)
         steps, per_step = [], []
         for i in range(a.cal_steps + 1):
@@ -487,7 +545,7 @@ def reconstruction(name: str, key: str, a: argparse.Namespace, budget_method: st
             runs = out.setdefault(mode, [])
             for seed in range(a.recon_seeds):
                 budget = None
-                for method in (budget_method, *[m for m in METHODS if m != budget_method]):
+                for method in (budget_method, *[m for m in a.methods if m != budget_method]):
                     t0 = time.perf_counter()
                     gc.collect()
                     run, targets = train(name, key, method, a, seed, targets, Path(workdir), budget, mode)
@@ -507,12 +565,16 @@ def _median(values: Sequence[float]) -> float:
 
 def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int],
                     recon: dict[str, list[dict[str, Any]]] | None = None,
-                    oracle_candidates: tuple[int | None, int] = (None, 256)) -> dict[str, Any]:
+                    oracle_candidates: tuple[int | None, int] = (None, 256), budget: float | None = None) -> dict[str, Any]:
     """One row per method (and the floor oracle) from the gradient runs and training runs.
 
     Row fields: ``relerr_equal_samples``, ``floor`` (the oracle at ``spp``), ``light``
     (``sqrt(max(e² − floor², 0))``), ``relerr_equal_time``, ``spp_equal_time``,
-    ``seconds_equal_time`` (charged), ``floor_equal_time`` (the oracle at that spp, where
+    ``seconds_equal_time`` (charged), ``relerr_equal_time_measured`` (the run at
+    ``spp_equal_time``); with ``budget`` (the equal-time seconds per step) a baseline's
+    ``relerr_equal_time`` is its error at exactly the budget (:func:`equal_time_error` over its
+    runs: whole spps round the budget either way, which can favour either side by up to one
+    spp) and its ``seconds_equal_time`` the budget; ``floor_equal_time`` (the oracle at that spp, where
     measured), ``gain`` (best baseline's equal-time error / this one's), ``bound`` (best
     baseline's equal-time error / ``floor_equal_time``), ``seconds_per_step``,
     ``burn_in_seconds``, ``charged_seconds_per_step``, ``stages`` and ``step_ratio_to_B.2`` at
@@ -523,6 +585,7 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
     (RMSE / the best baseline's), and the rows carry the first mode's (``recon_grad_paths``).
     Also returns ``best_baseline`` (equal time) and ``best_recon_baseline`` (first mode)."""
     by = {(r["method"], r["spp"]): r for r in runs}
+    methods, restirs = methods_in(r["method"] for r in runs)
     m_low, m_high = oracle_candidates
     floors = {
         s: camera_floor(by[(ORACLE_LOW, s)]["relerr"] if (ORACLE_LOW, s) in by else None, m_low, r["relerr"], m_high)
@@ -530,13 +593,18 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
     }
     floor = floors[spp]
     rows: dict[str, dict[str, Any]] = {}
-    for m in METHODS:
+    for m in methods:
         eqs, eqt = by[(m, spp)], by[(m, spp_eq[m])]
         e = eqs["relerr"]
+        e_eqt, t_eqt = eqt["relerr"], eqt["charged_seconds_per_step"]
+        if budget is not None and m in BASELINES:
+            e_eqt = equal_time_error([(r["charged_seconds_per_step"], r["relerr"]) for (mm, _), r in by.items() if mm == m], budget)
+            t_eqt = budget
         rows[m] = {
             "relerr_equal_samples": e, "floor": floor, "light": math.sqrt(max(e * e - floor * floor, 0.0)),
-            "relerr_equal_time": eqt["relerr"], "spp_equal_time": spp_eq[m], "seconds_equal_time": eqt["charged_seconds_per_step"],
-            "floor_equal_time": floors.get(spp_eq[m]) if m in RESTIRS else None,
+            "relerr_equal_time": e_eqt, "relerr_equal_time_measured": eqt["relerr"], "spp_equal_time": spp_eq[m],
+            "seconds_equal_time": t_eqt,
+            "floor_equal_time": floors.get(spp_eq[m]) if m in restirs else None,
             "seconds_per_step": eqs["seconds_per_step"], "burn_in_seconds": eqs["burn_in_seconds"],
             "charged_seconds_per_step": eqs["charged_seconds_per_step"], "stages": eqs["stages"],
         }
@@ -548,7 +616,7 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
         row["step_ratio_to_B.2"] = row["seconds_per_step"] / rows["B.2"]["seconds_per_step"]
         row["charged_step_ratio_to_B.2"] = row["charged_seconds_per_step"] / rows["B.2"]["seconds_per_step"]
     oracle = by[(ORACLE, spp)]
-    rows[ORACLE] = {"relerr_equal_samples": floor, "floor": floor, "light": 0.0, "relerr_equal_time": None,
+    rows[ORACLE] = {"relerr_equal_samples": floor, "floor": floor, "light": 0.0, "relerr_equal_time": None, "relerr_equal_time_measured": None,
                     "spp_equal_time": None, "seconds_equal_time": None, "floor_equal_time": None, "gain": None, "bound": None,
                     "seconds_per_step": oracle["seconds_per_step"], "burn_in_seconds": 0.0,
                     "charged_seconds_per_step": oracle["charged_seconds_per_step"], "stages": oracle["stages"],
@@ -562,7 +630,7 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
         out["reconstruction_summary"] = {}
         for mode, mode_runs in recon.items():
             summary = {}
-            for m in METHODS:
+            for m in methods:
                 mine = [r for r in mode_runs if r["method"] == m]
                 summary[m] = {
                     "recon_rmse": _median([r["final_param_error"] for r in mine]),
@@ -572,12 +640,12 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
                     "train_step_seconds": _median([_median(r["step_seconds"][1:] or r["step_seconds"]) for r in mine]),
                 }
             best_recon = min(BASELINES, key=lambda m: summary[m]["recon_rmse"])
-            for m in METHODS:
+            for m in methods:
                 summary[m]["train_step_ratio_to_direct"] = summary[m]["train_step_seconds"] / summary["direct"]["train_step_seconds"]
                 summary[m]["recon_ratio_to_best_baseline"] = summary[m]["recon_rmse"] / summary[best_recon]["recon_rmse"]
             out["reconstruction_summary"][mode] = {"best_baseline": best_recon, "rows": summary}
         primary = next(iter(recon))
-        for m in METHODS:
+        for m in methods:
             rows[m].update(out["reconstruction_summary"][primary]["rows"][m], recon_grad_paths=primary)
         out["best_recon_baseline"] = out["reconstruction_summary"][primary]["best_baseline"]
     return out
@@ -631,7 +699,9 @@ def tables(results: dict[str, Any]) -> str:
          "Floor: the camera-sampling floor, from the oracles at the same seeds and spp (same camera rays), extrapolated to "
          "infinitely many candidates with e² = floor² + L/M (one oracle: its error, a bound that caps at sqrt(M_oracle / M)); light part = "
          "sqrt(max(e² − floor², 0)). Equal time: every method's spp raised to the seconds per step of the slower ReSTIR variant "
-         "at equal samples, burn-in charged over the gradient steps; gain = the best baseline's equal-time error / the method's; "
+         "at equal samples, burn-in charged over the gradient steps; a baseline's equal-time error is read at exactly that budget "
+         "from its runs at the whole spps on either side (1/e², the effective sample count, linear in time; its spp column gives "
+         "the nearer whole spp); gain = the best baseline's equal-time error / the method's; "
          "'of possible' = the best baseline's error / the floor under the method (the most any light sampler can gain). "
          f"Reconstruction: the trainer, Adam lr {cfg['lr']}, L2, {spp} spp for every method, the slower ReSTIR's wall time "
          f"for {cfg['recon_steps']} steps (burn-in included) for all; texture RMSE after it, median of {cfg['recon_seeds']} seed(s); "
@@ -642,7 +712,8 @@ def tables(results: dict[str, Any]) -> str:
     overview = []
     for name, scene in results["scenes"].items():
         rows, best = scene["rows"], scene["best_baseline"]
-        recon = "recon_rmse" in rows[METHODS[0]]
+        methods, restirs = methods_in(rows)
+        recon = "recon_rmse" in rows[methods[0]]
         ref = scene["reference"]
         lines += ["", f"#### {name}", "",
                   (f"Floor at {spp} spp: {_fmt(rows[ORACLE]['floor'])} (oracle errors: "
@@ -655,12 +726,12 @@ def tables(results: dict[str, Any]) -> str:
         header = ["method", f"relerr ({spp} spp)", "floor", "light part", "relerr eq. time", "spp eq. time", "s/step eq. time (burn-in charged)",
                   "gain vs best baseline (eq. time)"]
         if recon:
-            header += [f"recon RMSE (eq. wall time, {rows[METHODS[0]]['recon_grad_paths']})", "recon steps", "x best baseline's RMSE"]
+            header += [f"recon RMSE (eq. wall time, {rows[methods[0]]['recon_grad_paths']})", "recon steps", "x best baseline's RMSE"]
         header += [f"s/step ({spp} spp)", "x B.2 step"]
         if recon:
             header += ["train s/step", "x direct train step"]
         body = []
-        for m in (*METHODS, ORACLE):
+        for m in (*methods, ORACLE):
             r = rows[m]
             line = [m, r["relerr_equal_samples"], r["floor"], r["light"], r["relerr_equal_time"], r["spp_equal_time"],
                     r["seconds_equal_time"], gain_text(r, best, m)]
@@ -672,14 +743,14 @@ def tables(results: dict[str, Any]) -> str:
             body.append(line)
         lines += _table(header, body)
         extra = scene.get("unfrozen_stages") or {}
-        stage_rows = [(m, rows[m]) for m in (*METHODS, ORACLE)] + list(extra.items())
+        stage_rows = [(m, rows[m]) for m in (*methods, ORACLE)] + list(extra.items())
         present = [st for st in STAGES if any(st in r["stages"] for _, r in stage_rows)]
         lines += ["", f"Cost per stage at {spp} spp (seconds per step: median of gradient steps 2..{cfg['grad_steps']}, "
                   "without the burn-in, which is given once; stages: medians of the integrator's timers (pass: a frozen "
                   "resampling pass, replayed by dr.freeze, has one timer; the rows marked unfrozen show where its time goes "
                   "when traced); other: the rest of the step, e.g. the torch/Dr.Jit boundary):", ""]
         lines += _table(["method", "s/step", "burn-in (once)", *present, "other", "x B.2 step"],
-                        [[m, r["seconds_per_step"], r.get("burn_in_seconds") if m in RESTIRS else None,
+                        [[m, r["seconds_per_step"], r.get("burn_in_seconds") if m in restirs else None,
                           *[r["stages"].get(st) for st in present], r["stages"].get("other"),
                           r["seconds_per_step"] / rows["B.2"]["seconds_per_step"]] for m, r in stage_rows])
         modes = scene.get("reconstruction_summary") or {}
@@ -690,8 +761,8 @@ def tables(results: dict[str, Any]) -> str:
                              *[f"{mode}: train s/step" for mode in modes]],
                             [[m, *[f"{_fmt(v['rows'][m]['recon_rmse'])} ({_fmt(v['rows'][m]['recon_steps'])})" for v in modes.values()],
                               *[v["rows"][m]["recon_ratio_to_best_baseline"] for v in modes.values()],
-                              *[v["rows"][m]["train_step_seconds"] for v in modes.values()]] for m in METHODS])
-        for m in RESTIRS:
+                              *[v["rows"][m]["train_step_seconds"] for v in modes.values()]] for m in methods])
+        for m in restirs:
             overview.append([name, m, rows[ORACLE]["floor"], rows[m]["relerr_equal_samples"], rows["B.2"]["relerr_equal_samples"],
                              f"{best} {_fmt(rows[best]['relerr_equal_time'])}", gain_text(rows[m], best, m),
                              1.0 / rows[m]["recon_ratio_to_best_baseline"] if recon else None,
@@ -720,7 +791,7 @@ def plot_results(results: dict[str, Any], out: Path) -> list[Path]:
     written = []
     for name, scene in results["scenes"].items():
         fig, ax = plt.subplots(figsize=(6.5, 4.5))
-        for m in METHODS:
+        for m in methods_in(scene["rows"])[0]:
             pts = sorted((r["charged_seconds_per_step"], r["relerr"], r["spp"]) for r in scene["gradient_runs"] if r["method"] == m)
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", color=colours[m], label=m)
             for x, y, s in pts:
@@ -763,12 +834,14 @@ def run_scene(name: str, a: argparse.Namespace) -> dict[str, Any]:
     ref_seconds = problem.ref_seconds
     print(f"[restir] {name}: reference ({a.ref_spp} spp, relative SE {problem.ref_relative_se:.4f}) in {problem.ref_seconds:.1f} s", flush=True)
     warm_up(problem, a)
-    runs = gradient_runs(problem, a, [(m, a.spp) for m in (*METHODS, *oracles(a))])  # equal samples
+    runs = gradient_runs(problem, a, [(m, a.spp) for m in (*a.methods, *oracles(a))])  # equal samples
     cal = calibrate(problem, a, runs)
     spp_eq = cal["equal_time_spp"]
     print(f"[restir] {name}: budget {cal['budget_seconds']:.4f} s/step ({cal['budget_method']}); equal-time spp {spp_eq} "
           f"({time.perf_counter() - t0:.1f} s)", flush=True)
-    equal_time = [(m, spp_eq[m]) for m in METHODS] + [(ORACLE, spp_eq[m]) for m in RESTIRS]  # the floor under each ReSTIR
+    exact = cal["equal_time_spp_exact"]
+    equal_time = ([(m, s) for m in BASELINES for s in bracketing_spps(exact[m], a.spp, a.max_spp)]  # interpolated to the budget
+                  + [(m, spp_eq[m]) for m in a.restir_methods] + [(ORACLE, spp_eq[m]) for m in a.restir_methods])  # the floor under each ReSTIR
     runs += gradient_runs(problem, a, [k for k in equal_time if k[1] != a.spp])
     unfrozen = stage_breakdown(problem, a)
     print(f"[restir] {name}: gradient runs done ({time.perf_counter() - t0:.1f} s)", flush=True)
@@ -776,7 +849,7 @@ def run_scene(name: str, a: argparse.Namespace) -> dict[str, Any]:
     del problem  # free its Mitsuba scene: the trainer's scenes reuse its Dr.Jit instance ids (see reconstruction)
     gc.collect()
     recon = None if a.no_reconstruction else reconstruction(name, key, a, cal["budget_method"])
-    summary = summarize_scene(runs, a.spp, cal["equal_time_spp"], recon, (a.oracle_low, a.oracle_candidates))
+    summary = summarize_scene(runs, a.spp, cal["equal_time_spp"], recon, (a.oracle_low, a.oracle_candidates), cal["budget_seconds"])
     return {"key": key, "texture_shape": texture, "reference": {"spp": a.ref_spp, "relative_se": ref_se, "seconds": ref_seconds}, "calibration": cal,
             "gradient_runs": runs, "reconstruction": recon or {}, **summary, "unfrozen_stages": unfrozen,
             "seconds": time.perf_counter() - t0}
@@ -784,7 +857,6 @@ def run_scene(name: str, a: argparse.Namespace) -> dict[str, Any]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     a = parse_args(argv)
-    select_restirs(a.restirs)
     import torchir
 
     torchir.backend.set_variant("auto")
