@@ -1229,3 +1229,46 @@ def test_offsets_are_fresh_after_a_geometry_edit_and_for_older_checkpoints(point
     assert np.isnan(_offsets(j)).all()
     j.step(point, 0, 2, 1)
     assert np.isfinite(_offsets(j)).all() and (_offsets(j) >= 0).all() and (_offsets(j) < 1).all()
+
+
+@pytest.mark.parametrize("spatial", [False, True])
+def test_the_lanes_own_chain_reuses_visibility_it_already_knows(point, spatial):
+    """On its own chain a lane's shading point and the geometry are those of its previous
+    reservoir, whose sample (W > 0, shadowed target) was visible from that very point: the pass
+    neither traces that shadow ray again nor rebuilds the point for the support test. With the
+    same seeds, tracing them gives the same image and reservoirs (the scene's blocker makes
+    some samples occluded, so visibility matters). With spatial reuse the neighbours sit at
+    other points: everything is traced."""
+    runs = []
+    for known in (True, False):
+        i = _integrator(candidates=2, burn_in=2, spatial=spatial, offset_lifetime=float("inf"))
+        i.same_point_visibility = known
+        images = [_np(i.step(point, 0, s, 2)[0]) for s in range(4)]
+        assert (i._neighbour_search.last == "lane") == (not spatial)
+        r = i.states[0].prev
+        runs.append([np.stack(images), _np(r.W), _np(r.M), _np(r.y.p.x), _np(r.y.em)])
+    mine, traced = runs
+    assert (mine[1] > 0).any() and (mine[1] == 0).any()  # lit and unlit lanes
+    for a, b in zip(mine, traced):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=0)
+
+
+def test_lane_chains_burn_in_with_one_pass_over_all_its_candidates(point, monkeypatch):
+    """A lane chain resamples at one shading point, so burn_in passes of its candidates equal
+    one RIS over all of them: the burn-in is one pass (here 40 x 2 candidates: past the unrolled
+    count, the symbolic loop), its reservoirs hold M = 80, and the step after it keeps them."""
+    i = _integrator(candidates=2, burn_in=40, spatial=False, offset_lifetime=float("inf"))
+    assert i.lane_chains and not _integrator(candidates=2, burn_in=4).lane_chains
+    calls = []
+    original = i.sample_paths
+
+    def spy(*args, **kw):
+        calls.append(kw.get("candidates"))
+        return original(*args, **kw)
+
+    monkeypatch.setattr(i, "sample_paths", spy)
+    i.step(point, 0, 0, 1)
+    assert calls == [80, None]  # the burn-in pass, then the step's
+    valid = _np(i.states[0].prev.valid) > 0
+    assert (_np(i.states[0].prev.M)[valid] == 82.0).all() and i._neighbour_search.last == "lane"
+    assert np.isfinite(_np(i.states[0].prev.W)).all() and (_np(i.states[0].prev.W)[valid] > 0).any()

@@ -106,7 +106,7 @@ def test_presets(scene):
     assert (o["offset_lifetime"], o["m_cap"], re_.integrator.chain_cap) == (0.0, 12.0, 384.0)
     persistent = _options(ReSTIRSampler(scene, preset="persistent", **kw))
     assert (persistent["candidates"], persistent["temporal"], persistent["spatial"], persistent["burn_in"]) == (6, True, False, 9)
-    assert (persistent["offset_lifetime"], persistent["multiview"]) == (512.0, "per_sensor")
+    assert (persistent["offset_lifetime"], persistent["multiview"]) == (2048.0, "per_sensor")
     assert _options(ReSTIRSampler(scene, preset="persistent", offset_lifetime=float("inf")))["offset_lifetime"] == float("inf")
     assert ReSTIRSampler(scene, m_cap=50).integrator.chain_cap == 50.0  # an explicit cap bounds both
     for preset in _PRESETS:
