@@ -5,8 +5,8 @@ Each option set is a ``ReSTIRSampler`` keyword list (``preset="direct"``: the sc
 integrator; ``spp=N``: samples per pixel). The error is the RMS over ``--steps`` steps of
 ``||g - g_ref|| / ||g_ref||`` at the grey texture with the L2 adjoint held fixed, the
 reference's own error (64 batches of 256 spp, cached in ``--cache``) removed in quadrature;
-seconds per step are medians (render + backward, after one untimed step that holds the
-burn-in and the compilation). How the defaults (16 candidates, 8 neighbours) were chosen:
+seconds per step are medians (render + backward, after a first step that holds the burn-in
+and the compilation, timed apart). How the defaults (16 candidates, 8 neighbours) were chosen:
 
     python scripts/sweep_restir.py ajar_painting \
         'preset="b2"' 'burn_in=32' 'burn_in=32,m_cap=160' 'burn_in=32,neighbors=8' \
@@ -71,7 +71,7 @@ def main(argv=None) -> None:
         cache.parent.mkdir(parents=True, exist_ok=True)
         torch.save((adjoint, g_ref, ref_error), cache)
     print(f"{a.scene} {a.resolution}²: reference relative error {ref_error:.4f}")
-    print(f"| options | relerr | s/step |\n|---|---|---|")
+    print(f"| options | relerr | s/step | first step s (burn-in, compile) |\n|---|---|---|---|")
     for text in a.options:
         options = keywords(text)
         spp = options.pop("spp", 1)
@@ -84,11 +84,13 @@ def main(argv=None) -> None:
             t0 = time.perf_counter()
             (render(scene, {key: t}, spp=spp, seed=1000 + i, **extra) * adjoint).sum().backward()
             dr.sync_thread()
-            if i > 0:
+            if i == 0:
+                first = time.perf_counter() - t0
+            else:
                 seconds.append(time.perf_counter() - t0)
                 errors.append(float((t.grad - g_ref).norm() / g_ref.norm()))
         error = math.sqrt(max(statistics.fmean(e * e for e in errors) - ref_error**2, 0.0))
-        print(f"| {text} | {error:.4f} | {statistics.median(seconds):.4f} |", flush=True)
+        print(f"| {text} | {error:.4f} | {statistics.median(seconds):.4f} | {first:.2f} |", flush=True)
 
 
 if __name__ == "__main__":
