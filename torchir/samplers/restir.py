@@ -32,7 +32,7 @@ from ..scene import Scene, is_geometry_key
 __all__ = ["ReSTIRSampler"]
 
 _PRESETS = ("restir", "persistent", "b1", "b2", "forward_only")
-PERSISTENT_LIFETIME = 2048.0  # preset "persistent": mean steps a lane keeps its camera offset (512: 18 % more gradient error, scripts/sweep_restir.py)
+PERSISTENT_LIFETIME = 2048.0  # preset "persistent": mean steps a lane keeps its camera offset (512: 21 % more gradient error, scripts/sweep_restir.py)
 
 
 class ReSTIRSampler:
