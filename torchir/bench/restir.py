@@ -99,7 +99,8 @@ def restir_variants(names: Sequence[str]) -> tuple[str, ...]:
     unknown = [n for n in names if n not in VARIANTS]
     if unknown or not names:
         raise ValueError(f"--restirs takes some of {', '.join(VARIANTS)}; got {','.join(names)}")
-    return tuple(m for m in ALL_RESTIRS if m[len("ReSTIR ("):-1] in names)
+    chosen = {VARIANTS[n] for n in names}
+    return tuple(m for m in ALL_RESTIRS if m in chosen)
 
 
 def methods_in(methods: Any) -> tuple[tuple[str, ...], tuple[str, ...]]:

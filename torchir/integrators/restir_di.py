@@ -431,7 +431,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if freeze:
             stats.timings = {"pass": _tic() - t0}
             self._neighbour_search.last = (None if source == "none" else "reprojected" if reproject
-                                           else "lane" if keep_offsets and not self.spatial else "screen")
+                                           else "lane" if keep_offsets and self.lane_chains else "screen")
         else:
             timings: dict[str, float] = {}
             ray_weight, image, r, n_ok, zero = self._pass(mi.UInt32(seed), *args, timings)
@@ -524,7 +524,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             # screen window per query: ceil(radius / its pixel footprint), at most layout.window
             footprint = pi.t * dr.norm(ray.d_x - ray.d)
             windows = mi.UInt32(dr.clip(dr.ceil(radius / dr.select(footprint > 0, footprint, radius)), 1, 3))
-            if keep_offsets and not self.spatial:  # the lane's own chain (a search could pick a neighbour's)
+            own_chain = keep_offsets and self.lane_chains
+            if own_chain:  # the lane's own chain (a search could pick a neighbour's)
                 d = src.p - r.p
                 # a redrawn lane starts afresh: reused at its new shading point, a long memory
                 # counts in Z (R8) where its sample is hidden, darkening or brightening the lane for
@@ -547,7 +548,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                 ok[i] = ok[i] & (dr.dot(n_src, r.n) >= self.normal_threshold)
             dr.eval(nbr, ok)
             t2 = tic("nn", t1)
-            same_point = keep_offsets and not self.spatial and self.shadowed and self.same_point_visibility
+            same_point = own_chain and self.shadowed and self.same_point_visibility
             r, f_sel, phat_sel, n_ok = self._combine(scene, sampler, si, r, f_sel, phat_sel, src, nbr, ok, cap, same_point)
             dr.eval(r, f_sel, n_ok)
             t1 = tic("combine", t2)
