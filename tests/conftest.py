@@ -29,5 +29,18 @@ def painting() -> torchir.Scene:
 
 
 @pytest.fixture()
+def settled_registry():
+    """For tests that count a frozen function's recordings: Dr.Jit keys a recording on every
+    instance in its registry (all scenes' shapes, BSDFs, emitters), so a scene of an earlier
+    test freed by the cyclic collector between two calls forces one new recording (seen as a
+    random failure in CI). Collect that garbage first, and keep the collector paused."""
+    import gc
+
+    gc.collect()
+    with torchir.backend.gc_paused():
+        yield
+
+
+@pytest.fixture()
 def red(cbox) -> torch.Tensor:
     return cbox.get("red.reflectance.value").requires_grad_()

@@ -57,7 +57,7 @@ def meter_dict() -> dict:
 
 # ------------------------------------------------------------------------ render_pixels
 @pytest.mark.parametrize("dtype", [torch.int64, torch.int32])
-def test_pixels_and_gradient_in_closed_form(wall, dtype, strict_warnings):
+def test_pixels_and_gradient_in_closed_form(wall, dtype, strict_warnings, settled_registry):
     """Values and gradient of listed pixels (unsorted, repeated), traced, recorded, replayed."""
     generator = torch.Generator().manual_seed(1)
     passes, recordings = rp._pixel_passes(wall), []
@@ -370,7 +370,7 @@ def test_grid_lanes():
     assert [a.numpy().tolist() for a in lanes] == [a.tolist() for a in (xs, ys, ws, hs)]
 
 
-def test_probe_radiance_and_derivative_in_closed_form(wall, strict_warnings):
+def test_probe_radiance_and_derivative_in_closed_form(wall, strict_warnings, settled_registry):
     """Three grids (full, half, half again): each probe pixel is the block it covers, the
     derivative along a tangent is that tangent; traced, recorded, then replayed."""
     grids = [(H, W), (H // 2, W // 2), (H // 2, W // 2)]
@@ -491,7 +491,7 @@ def test_listed_sensors_gradient_matches_finite_differences(views3):
     assert gradcheck(loss, {MV_KEY: views3.get(MV_KEY).requires_grad_()}, seeds=range(6), directions=2)
 
 
-def test_listed_sensors_replay_frozen_whatever_the_per_view_counts(views3):
+def test_listed_sensors_replay_frozen_whatever_the_per_view_counts(views3, settled_registry):
     """One wavefront keys its recording on the listed sensors and the total count only: batches
     whose per-view counts change every step replay one recording (per-view passes re-traced)."""
     x = views3.get(MV_KEY).requires_grad_()

@@ -219,10 +219,11 @@ def test_frozen_probe_replays_match_a_fresh_scene(red):
         torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
 
 
-def test_probe_records_once_across_refreshes():
+def test_probe_records_once_across_refreshes(settled_registry):
     """New seeds replay one recording. Building the constant lane arrays afresh for every call
     made the frozen pass re-record on some calls, varying from run to run: this test caught
-    that regression in 1 of 4 runs, so it guards it only partly."""
+    that regression in 1 of 4 runs, so it guards it only partly. (A scene of another test
+    freed between calls re-records too, hence ``settled_registry``.)"""
     from torchir.functions.render_pixels import _pixel_passes
 
     scene = torchir.Scene.builtin("cbox", resolution=2 * RES)

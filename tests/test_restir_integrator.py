@@ -631,7 +631,7 @@ def test_state_dict_round_trip(point):
 
 
 # ------------------------------------------------------------------------------ frozen pass
-def test_frozen_and_traced_passes_agree(multi):
+def test_frozen_and_traced_passes_agree(multi, settled_registry):
     """Replayed passes render what traced ones do; reuse replays only with the screen search,
     and a pass after another lane layout (spp) runs traced."""
     params = mi.traverse(multi)
