@@ -12,6 +12,25 @@ import torchir
 
 RES = 16  # every render test uses 16x16 so the kernels compile once
 
+# The longest files (worker seconds, measured), run first so that `-n 2 --dist loadfile` ends
+# with short files on both workers instead of one worker finishing a long file alone. xdist's
+# own reordering (by number of tests per file) is switched off for this in pytest_configure.
+LONGEST_FILES_FIRST = (
+    "test_restir.py", "test_training_ddp.py", "test_restir_integrator.py", "test_extremes.py",
+    "test_bench_restir.py", "test_photo_to_answer.py", "test_functions_pixels.py", "test_training.py",
+    "test_training_techniques.py", "test_bench_restir_shadow.py", "test_scenes_restir.py",
+)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if hasattr(config.option, "loadscopereorder"):  # pytest-xdist >= 3.6
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    rank = {name: i for i, name in enumerate(LONGEST_FILES_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file keeps its order
+
 
 @pytest.fixture(scope="session", autouse=True)
 def _variant() -> str:

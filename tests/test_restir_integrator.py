@@ -1272,3 +1272,20 @@ def test_lane_chains_burn_in_with_one_pass_over_all_its_candidates(point, monkey
     valid = _np(i.states[0].prev.valid) > 0
     assert (_np(i.states[0].prev.M)[valid] == 82.0).all() and i._neighbour_search.last == "lane"
     assert np.isfinite(_np(i.states[0].prev.W)).all() and (_np(i.states[0].prev.W)[valid] > 0).any()
+
+
+def test_unfrozen_lane_chains_launch_the_same_kernels_for_every_seed(point):
+    """Not frozen, a step's seed must reach the kernels as an opaque value: the offsets' redraw
+    hash once took it as a literal, so every step compiled a new kernel (2 s a step at 32²)."""
+    i = _integrator(candidates=2, burn_in=2, spatial=False, offset_lifetime=64.0, freeze=False)
+    assert i.lane_chains
+    i.step(point, 0, 0, 1)
+    i.step(point, 0, 1, 1)  # the first step with kept offsets
+    kernels = []
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        for seed in (2, 3):
+            dr.kernel_history_clear()
+            i.step(point, 0, seed, 1)
+            dr.eval()
+            kernels.append(sorted(k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT))
+    assert kernels[0] and kernels[0] == kernels[1]

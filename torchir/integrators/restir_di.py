@@ -493,7 +493,11 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             # hits); NaN: no offset stored (an older checkpoint)
             keep = dr.isfinite(prev.offset.x)
             if math.isfinite(self.offset_lifetime):  # a hash apart from the sampler's (its values fill redrawn lanes)
-                keep &= mi.sample_tea_float32(lane, seed ^ 0x0FF5E7D0) * self.offset_lifetime >= 1.0
+                # an opaque seed: a literal one compiled a new kernel every step when not frozen
+                # (2 s a step at 32², measured)
+                seed_v = mi.UInt32(seed)
+                dr.make_opaque(seed_v)
+                keep &= mi.sample_tea_float32(lane, seed_v ^ 0x0FF5E7D0) * self.offset_lifetime >= 1.0
             ray, ray_weight, offset = _sample_rays(sensor_obj, sampler, spp, w, h, prev.offset, keep)
         else:
             ray, ray_weight, offset = _sample_rays(sensor_obj, sampler, spp, w, h)
