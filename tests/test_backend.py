@@ -8,6 +8,7 @@ import sys
 import textwrap
 
 import drjit as dr
+import numpy as np
 import pytest
 
 from torchir import backend
@@ -146,3 +147,14 @@ def test_gc_paused_nests_and_restores_the_collector(cbox):
     finally:
         gc.enable()
     assert torch.isfinite(red.grad).all()
+
+
+@pytest.mark.parametrize("dtype", [np.uint32, np.bool_, np.float32])
+def test_aligned_host_array_copies_onto_a_64_byte_boundary(dtype):
+    """Fresh NumPy arrays start wherever the allocator puts them; Dr.Jit compiles their loads
+    as aligned or not by that address, so the copy must always start on the boundary."""
+    for n in (1, 7, 1000):
+        values = (np.arange(3 * n) % 5).astype(dtype)[1::3]  # a strided, offset view
+        out = backend.aligned_host_array(values)
+        assert out.ctypes.data % 64 == 0 and out.flags.c_contiguous and out.dtype == values.dtype
+        np.testing.assert_array_equal(out, values)

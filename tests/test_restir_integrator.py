@@ -1274,11 +1274,17 @@ def test_lane_chains_burn_in_with_one_pass_over_all_its_candidates(point, monkey
     assert np.isfinite(_np(i.states[0].prev.W)).all() and (_np(i.states[0].prev.W)[valid] > 0).any()
 
 
-def test_unfrozen_lane_chains_launch_the_same_kernels_for_every_seed(point):
+@pytest.mark.parametrize("options", [
+    {"spatial": False, "offset_lifetime": 64.0},  # lane chains
+    {"nn_backend": "kdtree"},  # spatiotemporal (a fixed search: "auto" tries each in turn)
+    {"target": "unshadowed", "nn_backend": "grid"},
+    {"temporal": False, "spatial": False},  # B.2
+], ids=["lane chains", "spatiotemporal", "unshadowed", "b2"])
+def test_unfrozen_steps_launch_the_same_kernels_for_every_seed(point, options):
     """Not frozen, a step's seed must reach the kernels as an opaque value: the offsets' redraw
     hash once took it as a literal, so every step compiled a new kernel (2 s a step at 32²)."""
-    i = _integrator(candidates=2, burn_in=2, spatial=False, offset_lifetime=64.0, freeze=False)
-    assert i.lane_chains
+    i = _integrator(candidates=2, burn_in=2, freeze=False, **options)
+    assert i.lane_chains == ("offset_lifetime" in options)
     i.step(point, 0, 0, 1)
     i.step(point, 0, 1, 1)  # the first step with kept offsets
     kernels = []

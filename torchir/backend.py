@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 ENV_VARIANT = "TORCHIR_VARIANT"
 ENV_FREEZE = "TORCHIR_FREEZE"  # "0" turns frozen render passes off
@@ -213,3 +214,18 @@ def gc_paused() -> Iterator[None]:
     finally:
         if enabled:
             gc.enable()
+
+
+def aligned_host_array(values: np.ndarray, alignment: int = 64) -> np.ndarray:
+    """A C-contiguous copy of ``values`` whose data starts on an ``alignment``-byte boundary.
+
+    Dr.Jit maps a NumPy array without copying and compiles its loads as aligned or not by
+    where the data happens to start, so arrays made afresh every step flip between two
+    kernels (and re-record a frozen function). Map this copy instead: always aligned.
+    """
+    values = np.asarray(values)
+    buffer = np.empty(values.nbytes + alignment, np.uint8)
+    start = -buffer.ctypes.data % alignment
+    out = buffer[start : start + values.nbytes].view(values.dtype).reshape(values.shape)
+    out[...] = values
+    return out

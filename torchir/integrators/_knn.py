@@ -26,6 +26,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..backend import aligned_host_array
+
 __all__ = ["knn", "knn_kdtree", "knn_grid", "knn_screen", "have_scipy", "NeighbourSearch", "ScreenLayout"]
 
 _MAX_CELLS = 1 << 22  # grid memory bound: coarser cells (still exact) beyond this
@@ -45,8 +47,8 @@ def _to_numpy(p: mi.Point3f) -> np.ndarray:
 
 def _columns(idx: np.ndarray, ok: np.ndarray, k: int) -> tuple[list[mi.UInt32], list[mi.Bool]]:
     return (
-        [mi.UInt32(np.ascontiguousarray(idx[:, i]).astype(np.uint32)) for i in range(k)],
-        [mi.Bool(np.ascontiguousarray(ok[:, i])) for i in range(k)],
+        [mi.UInt32(aligned_host_array(idx[:, i].astype(np.uint32))) for i in range(k)],
+        [mi.Bool(aligned_host_array(ok[:, i])) for i in range(k)],
     )
 
 
