@@ -1134,20 +1134,23 @@ def test_geometry_backward_adds_the_boundary_terms(point, monkeypatch):
 
     weights = np.random.default_rng(3).random((RES, RES, 3))
     plain = _integrator(candidates=2, neighbors=2, burn_in=1)
-    monkeypatch.setattr(plain, "boundary_integrator", lambda: Spy())
+    monkeypatch.setattr(plain, "boundary_integrator", lambda **kw: Spy())
     g_plain, _ = _backward(point, plain, weights, 3, 2, 9, 1)
     assert calls == []  # geometry=False by default: no boundary terms
-    monkeypatch.setattr(i, "boundary_integrator", lambda: Spy())
+    asked = []
+    monkeypatch.setattr(i, "boundary_integrator", lambda **kw: asked.append(kw) or Spy())
     params = mi.traverse(point)
     i.step(point, 0, 103, 2)
     with _texture_with_grad(params) as value:
         _, cache = i.step(point, 0, 3, 2)
         grad_in = mi.TensorXf(weights.astype(np.float32))
-        i.backward(point, cache, grad_in, 9, 1, geometry=True, params="the params")
+        the_params = {"no.mesh": mi.Float(0.0)}
+        i.backward(point, cache, grad_in, 9, 1, geometry=True, params=the_params)
         g = _np(dr.grad(value))
     np.testing.assert_allclose(g, g_plain, rtol=1e-5, atol=1e-7)
-    assert len(calls) == 1 and calls[0][0] is point and calls[0][1] == "the params" and calls[0][2] is grad_in
+    assert len(calls) == 1 and calls[0][0] is point and calls[0][1] is the_params and calls[0][2] is grad_in
     assert calls[0][3:] == (0, 9, 1)
+    assert asked == [{"secondary": True}]  # no mesh differentiated: Mitsuba's shadow edges too
 
 
 # ------------------------------------------------------------------------------ persistent offsets

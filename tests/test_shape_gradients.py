@@ -4,12 +4,16 @@ module-wide scenes include ``many_lights``: while its many emitters are alive ev
 over emitters covers them too (measured: these renders 5x slower)."""
 from __future__ import annotations
 
+import warnings
+
 import mitsuba as mi
+import numpy as np
 import pytest
 import torch
 
 import torchir
 from torchir.functions import render
+from torchir.samplers import ReSTIRSampler
 
 RES = 16  # as tests/conftest.py: the kernels compile once
 
@@ -67,3 +71,76 @@ def test_unwelded_mesh_under_shape_gradients_warns_once():
         warnings.simplefilter("always")
         render(welded, {"blocker.vertex_positions": w}, spp=1, seed=0)
     assert not [x for x in caught if "repeat another vertex" in str(x.message)]
+
+
+# ---------------------------------------------- shadow edges sampled on the moving mesh (ReSTIR)
+def test_shadow_edge_table_of_a_welded_box():
+    """12 triangles of a welded box: 12 box edges + 6 face diagonals, every one with two faces."""
+    from torchir.integrators._shadow_edges import mesh_edges
+
+    box = torchir.Scene.builtin("occluded_lights", resolution=8).mi_scene
+    mesh = next(s for s in box.shapes() if s.id() == "blocker")
+    table = mesh_edges(np.asarray(mesh.faces_buffer()))
+    assert len(table.a) == 18 and (table.a < table.b).all()
+    assert (table.c1 != table.c2).all()  # closed: two faces each, different third vertices
+    faces = np.asarray(mesh.faces_buffer()).reshape(-1, 3)
+    for a, b, c in zip(table.a, table.b, table.c1):
+        assert any({a, b, c} == set(f) for f in faces.tolist())
+
+
+def _restir_shadow_gradients(scene, key, v0, up, adjoint, n, edges):
+    from torchir.integrators.restir_di import ReSTIRDirectIntegrator
+
+    sampler = ReSTIRSampler(scene, candidates=4, burn_in=2)
+    grads = []
+    saved = ReSTIRDirectIntegrator.shadow_edge_sampling
+    ReSTIRDirectIntegrator.shadow_edge_sampling = edges
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the stage-v2 notice
+            for i in range(n):
+                dz = torch.zeros(1, requires_grad=True)
+                (render(scene, {key: v0 + dz * up}, spp=4, seed=100 + i, sampler=sampler) * adjoint).sum().backward()
+                grads.append(float(dz.grad))
+    finally:
+        ReSTIRDirectIntegrator.shadow_edge_sampling = saved
+    g = torch.tensor(grads)
+    return float(g.mean()), float(g.std()) / n**0.5
+
+
+def test_restir_shadow_edges_on_the_moving_mesh_agree_with_finite_differences():
+    """The blocker, seen only through its shadow, moves up. ReSTIR's shape gradient with shadow
+    edges sampled on the blocker alone must match finite differences within 4 s.e., and resolve
+    it with a smaller standard error than direct_projective's edge sampling at the same spp
+    (measured 19x smaller here; asserted: 3x)."""
+    res = 16
+    scene = torchir.Scene.builtin("occluded_lights", resolution=res)
+    key = "blocker.vertex_positions"
+    v0 = scene.get(key)
+    up = torch.tensor([0.0, 0.0, 1.0]).repeat(v0.numel() // 3)
+    image = lambda dz, seed: render(scene, {key: v0 + dz * up}, spp=4096, seed=seed)  # noqa: E731
+    adjoint = torch.sign(image(0.02, 9) - image(-0.02, 9)) / (res * res)
+    fd = sum(float(((image(0.02, s) - image(-0.02, s)) * adjoint).sum()) / 0.04 for s in range(2)) / 2
+    ours, se = _restir_shadow_gradients(scene, key, v0, up, adjoint, 8, edges=True)
+    _, se_projective = _restir_shadow_gradients(scene, key, v0, up, adjoint, 8, edges=False)
+    assert abs(fd) > 4 * se and abs(ours - fd) < 4 * se, (ours, fd, se)
+    assert se_projective > 3 * se, (se, se_projective)
+
+
+def test_shadow_edges_fall_back_to_mitsuba_where_they_do_not_apply():
+    from torchir.integrators import _shadow_edges
+
+    scene = torchir.Scene.builtin("occluded_lights", resolution=8).mi_scene
+    sensor = scene.sensors()[0]
+    shapes = {s.id(): s for s in scene.shapes()}
+    assert _shadow_edges.supported(scene, sensor, [shapes["blocker"]])
+    assert not _shadow_edges.supported(scene, sensor, [])
+    assert not _shadow_edges.supported(scene, sensor, [shapes["small_light"]])  # a light moving: not a shadow edge
+    T = mi.ScalarTransform4f
+    point_lit = mi.load_dict({
+        "type": "scene",
+        "sensor": torchir.scenes._common.perspective([0, 0, 3.0], [0, 0, 0], [0, 1, 0], 40.0, 8, 8),
+        "blocker": torchir.scenes._common.welded_box("blocker", T().scale(0.2), {"type": "diffuse"}),
+        "light": {"type": "point", "position": [0.5, 0.5, 2.5]},
+    })
+    assert not _shadow_edges.supported(point_lit, point_lit.sensors()[0], [point_lit.shapes()[0]])
