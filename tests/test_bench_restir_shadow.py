@@ -3,24 +3,44 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from torchir.bench import SUITES, restir_shadow
 
 
 def test_restir_shadow_runs_at_equal_time_and_writes_its_outputs(tmp_path):
     results = restir_shadow.main(["--resolution", "16", "--starts", "10", "--steps", "3", "--burn-in", "1",
-                                  "--target-spp", "16", "--out", str(tmp_path)])
+                                  "--target-spp", "16", "--spread-steps", "2", "--out", str(tmp_path)])
     assert set(results) == set(restir_shadow.METHODS)
     restir = results["ReSTIR"][0]
     assert restir["steps"] == 3 and len(restir["angles"]) == 3
-    for name in ("forward-only", "B.2", "direct_projective"):
+    for name in ("forward-only", "B.2", "ReSTIR, projective edges", "direct_projective"):
         run = results[name][0]
         assert 1 <= run["steps"] <= 12  # stepped until ReSTIR's wall time, at most 4x its steps
         assert run["steps"] == 12 or run["seconds"] >= 0.5 * restir["seconds"]
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["args"]["starts"] == [10.0]
     assert (tmp_path / "shadow.png").stat().st_size > 0
-    assert "| ReSTIR |" in (tmp_path / "summary.md").read_text()
+    assert "| ReSTIR |" in (tmp_path / "summary.md").read_text() and "variance x time" in (tmp_path / "summary.md").read_text()
+    spread = saved["spread"]
+    assert set(spread) == set(restir_shadow.METHODS)
+    assert all(r["sd"] >= 0 and r["seconds_per_step"] > 0 and r["var_x_time"] == pytest.approx(r["sd"] ** 2 * r["seconds_per_step"])
+               for r in spread.values())
     assert SUITES["restir_shadow"] == "torchir.bench.restir_shadow"
+
+
+def test_only_the_projective_variant_leaves_edge_sampling_off():
+    scene, _ = restir_shadow.shadow_problem(8)
+    flags = {m: restir_shadow.sampler_for(m, scene, 1).integrator.shadow_edge_sampling
+             for m in restir_shadow.METHODS if m != "direct_projective"}
+    assert flags == {"ReSTIR": True, "forward-only": True, "B.2": True, "ReSTIR, projective edges": False}
+
+
+def test_spread_table_ranks_by_variance_times_time():
+    spread = {"ReSTIR": {"mean": 2.0, "sd": 0.2, "seconds_per_step": 0.1, "var_x_time": 0.004},
+              "B.2": {"mean": 2.0, "sd": 0.4, "seconds_per_step": 0.05, "var_x_time": 0.008}}
+    table = restir_shadow.summarize_spread(spread, 10.0)
+    assert "| ReSTIR | 2 | 0.2 | 0.10 | 0.100 | 0.004 | 1 |" in table and "| B.2 | 2 | 0.4 | 0.20 | 0.050 | 0.008 | 2 |" in table
 
 
 def test_summary_counts_converged_starts():

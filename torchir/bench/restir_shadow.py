@@ -8,11 +8,13 @@ recovered from the image alone, from several starts, with Adam on the L2 loss. M
 * **ReSTIR**: spatiotemporal reuse (``ReSTIRSampler`` defaults) + boundary terms;
 * **forward-only**: reuse for the image, plain RIS for the interior gradient;
 * **B.2**: RIS with the same candidates, no reuse;
+* **ReSTIR, projective edges**: ReSTIR with the shadow edges from ``direct_projective`` (every
+  edge of the scene) instead of edge samples on the blocker alone;
 * **direct_projective**: Mitsuba's own integrator (no guiding), no ``ReSTIRSampler``.
 
-The blocker's gradient is entirely a shadow-boundary term (``direct_projective``'s, which
-torchir adds without reuse), weighted by the loss's adjoint ``2 (image - target)``. Reuse
-therefore helps through the image: a less noisy adjoint. **Equal time**: ReSTIR runs ``--steps``
+The blocker's gradient is entirely a shadow-boundary term, weighted by the loss's adjoint
+``2 (image - target)``: the samplers estimate it from points on the blocker's edges (no reuse),
+so reuse helps through the image, a less noisy adjoint. **Equal time**: ReSTIR runs ``--steps``
 steps from each start (burn-in included in its time); every other method then steps until it
 has used the same wall time (at most ``4 x --steps``). A start converges when the final angle is
 within ``--tolerance`` degrees of the truth.
@@ -42,7 +44,7 @@ from torchir.functions import render
 from torchir.samplers import ReSTIRSampler
 from torchir.scenes.occluded_lights import BLOCKER_CENTER
 
-METHODS = ("ReSTIR", "forward-only", "B.2", "direct_projective")
+METHODS = ("ReSTIR", "forward-only", "B.2", "ReSTIR, projective edges", "direct_projective")
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
@@ -54,12 +56,15 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--lr", type=float, default=1.0, help="Adam learning rate (degrees)")
     p.add_argument("--target-spp", type=int, default=256)
     p.add_argument("--tolerance", type=float, default=5.0, help="converged: final |angle| below this (degrees)")
+    p.add_argument("--spread-steps", type=int, default=None, help="gradients per method for the spread table (default 24, quick 8)")
+    p.add_argument("--spread-angle", type=float, default=10.0, help="angle (degrees) where the gradient spread is measured")
     p.add_argument("--quick", action="store_true")
     p.add_argument("--out", default="results/bench_restir_shadow")
     a = p.parse_args(argv)
     a.resolution = a.resolution or (32 if a.quick else 64)
     a.starts = [float(s) for s in (a.starts or ("20,-20" if a.quick else "20,-20,40,-40")).split(",")]
     a.steps = a.steps or (20 if a.quick else 80)
+    a.spread_steps = a.spread_steps or (8 if a.quick else 24)
     return a
 
 
@@ -72,8 +77,11 @@ def shadow_problem(resolution: int, integrator: dict[str, Any] | None = None) ->
 def sampler_for(method: str, scene: torchir.Scene, burn_in: int) -> ReSTIRSampler | None:
     if method == "direct_projective":
         return None
-    preset = {"ReSTIR": "restir", "forward-only": "forward_only", "B.2": "b2"}[method]
-    return ReSTIRSampler(scene, preset=preset, burn_in=burn_in)
+    preset = {"ReSTIR": "restir", "forward-only": "forward_only", "B.2": "b2", "ReSTIR, projective edges": "restir"}[method]
+    sampler = ReSTIRSampler(scene, preset=preset, burn_in=burn_in)
+    if method == "ReSTIR, projective edges":
+        sampler.integrator.shadow_edge_sampling = False
+    return sampler
 
 
 def fit(scene, key, target, start, sampler, a, max_steps: int, budget: float | None) -> dict[str, Any]:
@@ -95,6 +103,40 @@ def fit(scene, key, target, start, sampler, a, max_steps: int, budget: float | N
     final = angles[-1]
     return {"start": start, "angles": angles, "clock": clock, "seconds": elapsed, "steps": len(angles),
             "final": final, "converged": abs(final) < a.tolerance}
+
+
+def gradient_spread(problems: dict[str, tuple], target, a) -> dict[str, dict[str, float]]:
+    """Per method, ``a.spread_steps`` gradients of the L2 loss at ``a.spread_angle`` (new seeds,
+    the sampler's state carried as in a run): mean, standard deviation and median seconds per
+    step; ``var_x_time`` = variance x seconds, the figure equal time compares."""
+    out = {}
+    for method in METHODS:
+        scene, key = problems[method]
+        sampler = sampler_for(method, scene, a.burn_in)
+        extra = {} if sampler is None else {"sampler": sampler}
+        grads, seconds = [], []
+        for i in range(a.spread_steps + 2):  # two first steps (burn-in, kernels) not counted
+            theta = torch.tensor([a.spread_angle], requires_grad=True)
+            t0 = time.perf_counter()
+            ((render(scene, {key: theta}, spp=1, seed=5000 + i, **extra) - target) ** 2).mean().backward()
+            if i >= 2:
+                seconds.append(time.perf_counter() - t0)
+                grads.append(float(theta.grad))
+        g = torch.tensor(grads, dtype=torch.float64)
+        sd, step = float(g.std()), float(torch.tensor(seconds).median())
+        out[method] = {"mean": float(g.mean()), "sd": sd, "seconds_per_step": step, "var_x_time": sd * sd * step}
+    return out
+
+
+def summarize_spread(spread: dict[str, dict[str, float]], angle: float) -> str:
+    best = min((r["var_x_time"] for r in spread.values() if r["var_x_time"] > 0), default=0.0)  # 0: no sample found an edge
+    lines = [f"Gradient d(loss)/d(angle) at {angle:g} degrees, one step each (spp 1):", "",
+             "| method | mean | sd | sd / mean | s/step | variance x time | x best |", "|---|---|---|---|---|---|---|"]
+    for name, r in spread.items():
+        rel = r["sd"] / abs(r["mean"]) if r["mean"] else float("inf")
+        lines.append(f"| {name} | {r['mean']:.3g} | {r['sd']:.3g} | {rel:.2f} | {r['seconds_per_step']:.3f} | "
+                     f"{r['var_x_time']:.3g} | {r['var_x_time'] / best if best > 0 and r['var_x_time'] > 0 else float('nan'):.3g} |")
+    return "\n".join(lines) + "\n"
 
 
 def summarize(results: dict[str, list[dict[str, Any]]], tolerance: float) -> str:
@@ -127,6 +169,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     for method in METHODS:  # compile every method's kernels before timing (a short burn-in)
         s, k = (plain, plain_key) if method == "direct_projective" else (scene, key)
         fit(s, k, target, a.starts[0], sampler_for(method, s, 1), a, 2, None)
+    problems = {m: (plain, plain_key) if m == "direct_projective" else (scene, key) for m in METHODS}
+    spread = gradient_spread(problems, target, a)
     results: dict[str, list[dict[str, Any]]] = {m: [] for m in METHODS}
     for start in a.starts:
         budget = None
@@ -140,8 +184,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             results[method].append(run)
             print(f"{method} from {start:+.0f}: final {run['final']:.2f} in {run['steps']} steps, {run['seconds']:.1f} s", flush=True)
     summary = (f"# Pose from a shadow (occluded_lights), {a.resolution}², Adam lr {a.lr}, equal time per start\n\n"
-               + summarize(results, a.tolerance))
-    write_outputs(out, summary, {"args": vars(a), "results": results}, draw(results), "shadow.png",
+               + summarize(results, a.tolerance) + "\n" + summarize_spread(spread, a.spread_angle))
+    write_outputs(out, summary, {"args": vars(a), "results": results, "spread": spread}, draw(results), "shadow.png",
                   "wall time (s; ReSTIR's burn-in included)", "blocker rotation (degrees; truth 0)")
     return results
 

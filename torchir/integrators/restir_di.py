@@ -671,8 +671,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         Interior term (R17, R18) on the step's paths (``shared``) or on a second resampling
         pass (``decorrelated``, ``forward_only``). ``geometry`` (stage v2, shape parameters):
         the shading point follows the camera ray (attached re-intersection), and the
-        visibility-boundary terms come from Mitsuba's ``direct_projective`` with ``sppc=0``
-        (no reuse); ``params`` are the grad-enabled values it differentiates.
+        visibility-boundary terms are added without reuse (:meth:`_boundary_backward`);
+        ``params`` are the grad-enabled values they differentiate.
         """
         t0 = _tic()
         st = self.state(scene, STORE if self.carries_over(scene) else cache.sensor)

@@ -185,8 +185,9 @@ class ReSTIRSampler:
             self.scene.warn_once(
                 "restir-geometry",
                 "ReSTIR with shape parameters (stage v2): interior term with reuse (ray-following shading "
-                "points) + boundary terms of direct_projective without reuse; the temporal support test "
-                "uses the current geometry (small bias, spec D7)",
+                "points) + boundary terms without reuse (shadow edges sampled on the moving meshes under area "
+                "lights, the rest from direct_projective); the temporal support test uses the current "
+                "geometry (small bias, spec D7)",
             )
 
     # ------------------------------------------------------------------ public state API
