@@ -144,3 +144,16 @@ def test_shadow_edges_fall_back_to_mitsuba_where_they_do_not_apply():
         "light": {"type": "point", "position": [0.5, 0.5, 2.5]},
     })
     assert not _shadow_edges.supported(point_lit, point_lit.sensors()[0], [point_lit.shapes()[0]])
+
+
+def test_shadow_edges_are_left_to_mitsuba_when_a_transform_moves_too():
+    import drjit as dr
+
+    from torchir.integrators.restir_di import _differentiated_meshes
+
+    scene = torchir.Scene.builtin("occluded_lights", resolution=8).mi_scene
+    v, t = mi.Float(1.0), mi.Float(2.0)
+    dr.enable_grad(v, t)
+    assert [m.id() for m in _differentiated_meshes(scene, {"blocker.vertex_positions": v})] == ["blocker"]
+    assert _differentiated_meshes(scene, {"blocker.vertex_positions": v, "floor.to_world": t}) == []
+    assert _differentiated_meshes(scene, {"blocker.vertex_positions": mi.Float(1.0)}) == []  # no gradient asked

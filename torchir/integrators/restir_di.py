@@ -944,7 +944,11 @@ def _struct_from_numpy(struct_type, data: dict[str, np.ndarray]):
 
 
 def _differentiated_meshes(scene: mi.Scene, params: Any) -> list:
-    """The meshes whose vertex positions ``params`` differentiates."""
-    names = {name[: -len(".vertex_positions")] for name, value in (params or {}).items()
-             if name.endswith(".vertex_positions") and dr.grad_enabled(value)}
+    """The meshes whose vertex positions ``params`` differentiates; empty when other geometry
+    moves too (a transform, a sphere's centre or radius), whose shadow edges only Mitsuba's
+    estimator covers."""
+    moving = [name for name, value in (params or {}).items() if dr.grad_enabled(value)]
+    if any(name.rsplit(".", 1)[-1] in ("to_world", "center", "radius") for name in moving):
+        return []
+    names = {name[: -len(".vertex_positions")] for name in moving if name.endswith(".vertex_positions")}
     return [shape for shape in scene.shapes() if shape.id() in names]
