@@ -157,3 +157,60 @@ def test_shadow_edges_are_left_to_mitsuba_when_a_transform_moves_too():
     assert [m.id() for m in _differentiated_meshes(scene, {"blocker.vertex_positions": v})] == ["blocker"]
     assert _differentiated_meshes(scene, {"blocker.vertex_positions": v, "floor.to_world": t}) == []
     assert _differentiated_meshes(scene, {"blocker.vertex_positions": mi.Float(1.0)}) == []  # no gradient asked
+
+
+def test_edge_guide_keeps_every_pair_and_mixes_by_length():
+    from torchir.integrators._shadow_edges import GUIDE_DEFENSIVE, _pair_pmf
+
+    lengths, lights = np.array([1.0, 3.0]), np.array([0.5, 0.5])
+    np.testing.assert_allclose(_pair_pmf(lengths, lights, None), [0.125, 0.125, 0.375, 0.375])
+    guided = _pair_pmf(lengths, lights, np.array([[0.0, 2.0], [0.0, 0.0]]))
+    assert guided.sum() == pytest.approx(1.0)
+    assert (guided >= GUIDE_DEFENSIVE * _pair_pmf(lengths, lights, None) - 1e-12).all()  # every pair keeps a share
+    assert guided[1] == pytest.approx(1 - GUIDE_DEFENSIVE + GUIDE_DEFENSIVE * 0.125)
+
+
+def test_guided_edge_samples_stay_unbiased_with_less_variance():
+    """shadow_edge_backward at a fixed adjoint (the blocker's rotation at 10 degrees, 64², 1 edge
+    sample per pixel), 48 steps each: guided by the earlier steps' samples, the mean must agree
+    with the by-length mean within 4 s.e. and the sd must drop by more than 1.5x (measured 2.5x;
+    with 48 steps the log of the sd ratio has an s.e. of about 0.2)."""
+    import math
+
+    import drjit as dr
+
+    from torchir.integrators import _shadow_edges
+    from torchir.scenes import occluded_lights
+
+    res = 64
+    scene = mi.load_dict(occluded_lights.build(resolution=res))
+    params = mi.traverse(scene)
+    key = "blocker.vertex_positions"
+    v0, pivot = mi.Float(params[key]), mi.Point3f(*occluded_lights.BLOCKER_CENTER)
+
+    def pose(theta):
+        p = dr.unravel(mi.Point3f, v0) - pivot
+        c, s = dr.cos(theta), dr.sin(theta)
+        params[key] = dr.ravel(mi.Point3f(c * p.x - s * p.y, s * p.x + c * p.y, p.z) + pivot)
+        params.update()
+
+    pose(mi.Float(0.0))
+    target = mi.render(scene, spp=64, seed=1)
+    pose(mi.Float(math.radians(10.0)))
+    adjoint = mi.TensorXf(2.0 * (mi.render(scene, spp=64, seed=2).array - target.array), target.shape)
+    blocker = [s for s in scene.shapes() if s.id() == "blocker"]
+
+    def run(guides):
+        out = []
+        for i in range(52):
+            theta = mi.Float(math.radians(10.0))
+            dr.enable_grad(theta)
+            pose(theta)
+            _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, res * res, 100 + i, guides)
+            out.append(dr.grad(theta)[0])
+        return np.array(out[4:])  # the guide's first steps left out
+
+    plain, guided = run(None), run({})
+    se = math.sqrt((plain.var(ddof=1) + guided.var(ddof=1)) / len(plain))
+    assert abs(plain.mean()) > 8 * se and abs(guided.mean() - plain.mean()) < 4 * se
+    assert plain.std(ddof=1) > 1.5 * guided.std(ddof=1), (plain.std(), guided.std())

@@ -87,12 +87,23 @@ def supported(scene: mi.Scene, sensor: mi.Sensor, meshes: list) -> bool:
     return str(sensor).startswith("PerspectiveCamera")
 
 
+GUIDE_MEMORY = 0.1  # weight of a step's estimate in a guide's running mean
+GUIDE_DEFENSIVE = 0.25  # share of the (edge, light) choice that stays by length x light pmf
+
+
 def shadow_edge_backward(
-    scene: mi.Scene, sensor_index: int, grad_in: mi.TensorXf, meshes: list, samples: int, seed: int
+    scene: mi.Scene, sensor_index: int, grad_in: mi.TensorXf, meshes: list, samples: int, seed: int,
+    guides: dict | None = None,
 ) -> None:
     """Accumulate into the meshes' grad-enabled vertex positions the shadow-edge derivative of
     ``sum(grad_in * image)``: ``samples`` edge samples in all, split over ``meshes`` by edge
-    length. ``grad_in`` is the image adjoint (H, W, 3) of sensor ``sensor_index``."""
+    length. ``grad_in`` is the image adjoint (H, W, 3) of sensor ``sensor_index``.
+
+    ``guides`` (a dict kept by the caller across steps, or None): per mesh, a running estimate of
+    each (edge, light) pair's share of ``sum |adjoint * contribution|`` (paper 004 R22, with the
+    light in the pair). The pair is then drawn from a mixture: ``1 - GUIDE_DEFENSIVE`` by the
+    guide, the rest by edge length x the scene's light pmf, so every pair keeps a
+    probability and the estimate stays unbiased; each step's samples update the guide."""
     sensor = scene.sensors()[sensor_index]
     tables = [_edges_of(np.asarray(m.faces_buffer(), np.uint32).tobytes()) for m in meshes]
     with dr.suspend_grad():
@@ -103,24 +114,47 @@ def shadow_edge_backward(
     extent = float(dr.max(scene.bbox().extents()))
     for i, (mesh, table, length) in enumerate(zip(meshes, tables, lengths)):
         n = max(1, round(samples * length / total))
-        _mesh_backward(scene, sensor, grad_in, mesh, table, n, mi.sample_tea_32(seed, i)[0], _EPS * extent)
+        guide = None if guides is None else guides.get(mesh.id())
+        if guide is not None and guide.shape != (len(table.a), len(scene.emitters())):
+            guide = None  # another mesh or light set: start afresh
+        found = _mesh_backward(scene, sensor, grad_in, mesh, table, n, mi.sample_tea_32(seed, i)[0], _EPS * extent, guide)
+        if guides is not None:
+            guides[mesh.id()] = found if guide is None else (1 - GUIDE_MEMORY) * guide + GUIDE_MEMORY * found
 
 
 def _edge_lengths(mesh, table: EdgeTable) -> mi.Float:
     return dr.norm(mesh.vertex_position(mi.UInt32(table.b)) - mesh.vertex_position(mi.UInt32(table.a)))
 
 
-def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, n: int, seed: int, eps: float) -> None:
+def _pair_pmf(lengths: np.ndarray, light_pmf: np.ndarray, guide: np.ndarray | None) -> np.ndarray:
+    """Probabilities of the (edge, light) pairs, flattened edge-major: edge length x light pmf,
+    mixed with the guide (see :func:`shadow_edge_backward`)."""
+    default = np.outer(lengths, light_pmf)
+    default /= default.sum()
+    if guide is None or not np.isfinite(guide).all() or guide.sum() <= 0:
+        return default.ravel()
+    return ((1 - GUIDE_DEFENSIVE) * guide / guide.sum() + GUIDE_DEFENSIVE * default).ravel()
+
+
+def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, n: int, seed: int, eps: float,
+                   guide: np.ndarray | None) -> np.ndarray:
+    """One mesh's samples (see :func:`shadow_edge_backward`); returns this step's estimate of
+    ``sum |adjoint * contribution|`` per (edge, light) pair, for the guide."""
     film_w, film_h = (int(v) for v in sensor.film().crop_size())
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
+    n_lights = len(scene.emitters())
     with dr.suspend_grad():
-        # edge point xB: edge by length, uniform along it
+        # the (edge, light) pair by _pair_pmf, xB uniform along the edge
         ea, eb = mi.UInt32(table.a), mi.UInt32(table.b)
         pa, pb = mesh.vertex_position(ea), mesh.vertex_position(eb)
-        edge_pick = mi.DiscreteDistribution(dr.norm(pb - pa))
-        edge, along = edge_pick.sample_reuse(sampler.next_1d())
-        inv_pdf_edge = edge_pick.sum()
+        lengths = dr.norm(pb - pa)
+        light_pmf = np.array([float(scene.pdf_emitter(j)[0]) for j in range(n_lights)])
+        pmf = _pair_pmf(np.asarray(lengths, np.float64), light_pmf, guide)
+        pair_pick = mi.DiscreteDistribution(mi.Float(pmf.astype(np.float32)))
+        pair, along = pair_pick.sample_reuse(sampler.next_1d())
+        edge, emitter_index = pair // n_lights, pair % n_lights
+        inv_pdf_edge = dr.gather(mi.Float, lengths, edge) * pair_pick.sum() / pair_pick.eval_pmf(pair)
         a = dr.gather(mi.Point3f, pa, edge)
         b = dr.gather(mi.Point3f, pb, edge)
         tangent = dr.normalize(b - a)
@@ -128,12 +162,11 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, n: int, seed:
         third1 = mesh.vertex_position(dr.gather(mi.UInt32, mi.UInt32(table.c1), edge))
         third2 = mesh.vertex_position(dr.gather(mi.UInt32, mi.UInt32(table.c2), edge))
 
-        # light point x0: an emitter (by Mitsuba's emitter sampling), then by area on its shape
-        emitter_index, emitter_weight, _ = scene.sample_emitter(sampler.next_1d())
+        # light point x0: by area on the pair's light
         emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), emitter_index)
         ps, _ = emitter.sample_position(0.0, sampler.next_2d())
         x0, n_light = ps.p, mi.Vector3f(ps.n)
-        inv_pdf = emitter_weight * dr.select(ps.pdf > 0, dr.rcp(ps.pdf), 0.0) * inv_pdf_edge
+        inv_pdf = dr.select(ps.pdf > 0, dr.rcp(ps.pdf), 0.0) * inv_pdf_edge
 
         to_edge = xb - x0
         dist_0b = dr.norm(to_edge)
@@ -177,6 +210,8 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, n: int, seed:
         adjoint = dr.gather(mi.Color3f, grad_in.array, mi.UInt32(pixel.y * film_w + pixel.x), active)
         weight = dr.select(active & dr.isfinite(value.x + value.y + value.z), dr.dot(adjoint, value), 0.0)
         camera = ds.p
+        found = dr.zeros(mi.Float, len(pmf))
+        dr.scatter_reduce(dr.ReduceOp.Add, found, dr.abs(weight), pair)
 
     # attached: xB rides on its edge, x1 on the camera ray (ray-following, as the interior
     # term), x0 is where the line x1 -> xB meets the light's plane
@@ -191,3 +226,4 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, n: int, seed:
         objective = dr.sum(dr.select(active, weight * dr.dot(into_shadow, x0_t), 0.0))
         if dr.grad_enabled(objective):
             dr.backward(objective)
+    return np.asarray(found, np.float64).reshape(len(table.a), n_lights)

@@ -230,6 +230,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     zero_remainder = True  # step() takes zero_remainder= (torchir's render sets it per step)
     same_point_visibility = True  # a lane's own chain reuses its sample's visibility (see _combine; False: traced, for tests)
     shadow_edge_sampling = True  # shadow edges sampled on the moving meshes (see _boundary_backward; False: direct_projective's)
+    edge_guiding = True  # (edge, light) pairs drawn by what earlier steps found (_shadow_edges; False: by length)
 
     def __init__(self, props: mi.Properties | None = None, **options: Any) -> None:
         props = mi.Properties() if props is None else props
@@ -316,6 +317,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         """Forget every sensor's reservoirs (the next step burns in again)."""
         self.states.clear()
         self.last.clear()
+        self.__dict__.pop("_edge_guides", None)
 
     def state(self, scene: mi.Scene, sensor: int) -> SensorState:
         sig = _signature(scene)
@@ -710,13 +712,16 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     def _boundary_backward(self, scene: mi.Scene, params: Any, grad_in: mi.TensorXf, sensor: int, seed: int, spp: int) -> None:
         """The visibility-boundary terms. Shadow edges of the differentiated meshes, where
         :func:`_shadow_edges.supported` (area lights, a perspective sensor), come from edge
-        samples on those meshes alone (``spp`` per pixel); the rest from ``direct_projective``."""
+        samples on those meshes alone (``spp`` per pixel, guided by the earlier steps' samples
+        unless ``edge_guiding`` is off); the rest from ``direct_projective``. The guides are a
+        variance heuristic only: not saved in checkpoints, rebuilt after a resume."""
         meshes = _differentiated_meshes(scene, params)
         edges = self.shadow_edge_sampling and _shadow_edges.supported(scene, scene.sensors()[sensor], meshes)
         self.boundary_integrator(secondary=not edges).render_backward(scene, params, grad_in, sensor, seed, spp)
         if edges:
             w, h = (int(v) for v in scene.sensors()[sensor].film().crop_size())
-            _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]))
+            guides = self.__dict__.setdefault("_edge_guides", {}) if self.edge_guiding else None
+            _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]), guides)
 
     def boundary_integrator(self, secondary: bool = True) -> mi.Integrator:
         """Mitsuba's ``direct_projective`` restricted to its boundary terms (``sppc=0``; with
