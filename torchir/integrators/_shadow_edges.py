@@ -19,6 +19,10 @@ changes the measure by (derived for this module; checked against finite differen
 ``x1`` and the edge and ``n_Π,t`` its part in the light's plane. The ``|n1 · ω|`` cancels the
 receiver's cosine in ``G``.
 
+The (edge, light) pair is drawn by edge length x the scene's light pmf, or, given a guide kept
+across steps, mostly by what the earlier steps' samples found on each pair (paper 004 R22):
+2.5x lower sd for the blocker below at 64².
+
 Only edges of the given meshes are sampled (the geometry that moves), and only area lights
 (planar, as Mitsuba's rectangles and meshes are per triangle) are supported: the caller keeps
 Mitsuba's own estimator for anything else (:func:`supported`). On ``occluded_lights`` (32², the
