@@ -1298,3 +1298,28 @@ def test_unfrozen_steps_launch_the_same_kernels_for_every_seed(point, options):
             dr.eval()
             kernels.append(sorted(k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT))
     assert kernels[0] and kernels[0] == kernels[1]
+
+
+def test_temporal_memory_is_short_while_the_geometry_moves(point):
+    """A step after a geometry edit caps M at ``moving_geometry_m_cap`` (4): a long memory let
+    the image's error follow the moved shadow for many steps. Unmoved, M grows to the cap."""
+    i = _integrator(candidates=3, neighbors=4, burn_in=0, m_cap=100, spatial=False, nn_backend="grid")
+    params = mi.traverse(point)
+    for seed in range(3):
+        i.step(point, 0, seed, 1)
+    assert _np(i.states[0].prev.M).max() == 9.0
+    try:
+        params["blocker.to_world"] = mi.Transform4f(T().translate([-0.28, 0.3, 0.6]).scale(0.15))
+        params.update()
+        i.step(point, 0, 3, 1)
+        assert _np(i.states[0].prev.M).max() == 4.0
+        i.step(point, 0, 4, 1)  # unmoved since: the memory grows again
+        assert _np(i.states[0].prev.M).max() == 7.0
+        i.moving_geometry_m_cap = 0  # off: the m_cap alone
+        params["blocker.to_world"] = mi.Transform4f(T().translate([-0.3, 0.3, 0.6]).scale(0.15))
+        params.update()
+        i.step(point, 0, 5, 1)
+        assert _np(i.states[0].prev.M).max() == 10.0
+    finally:
+        params["blocker.to_world"] = mi.Transform4f(T().translate([-0.3, 0.3, 0.6]).scale(0.15))
+        params.update()

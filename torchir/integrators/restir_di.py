@@ -231,6 +231,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     same_point_visibility = True  # a lane's own chain reuses its sample's visibility (see _combine; False: traced, for tests)
     shadow_edge_sampling = True  # shadow edges sampled on the moving meshes (see _boundary_backward; False: direct_projective's)
     edge_guiding = True  # (edge, light) pairs drawn by what earlier steps found (_shadow_edges; False: by length)
+    moving_geometry_m_cap = 4  # the M cap of temporal reuse after the geometry moved (see sample_paths; 0: m_cap)
 
     def __init__(self, props: mi.Properties | None = None, **options: Any) -> None:
         props = mi.Properties() if props is None else props
@@ -415,6 +416,13 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             st.geometry = geometry
         keep_offsets = (self.offset_lifetime > 0 and source == "temporal" and static and not reproject
                         and geometry == st.geometry)
+        # the geometry moved since the reservoirs were made (a shape being optimised): a short
+        # memory, or the image's error follows the moved shadow for many steps (measured on the
+        # blocker's pose, Adam at 3 degrees a step: the angle wandered +-4-7 degrees with the M cap
+        # 32, +-1.5-1.9 with 4, and converged from 4 of 4 starts instead of 2)
+        m_cap = self.m_cap
+        if source == "temporal" and geometry != st.geometry and self.moving_geometry_m_cap > 0:
+            m_cap = min(m_cap, float(self.moving_geometry_m_cap))
         freeze = self.freeze and candidates == self.candidates and (
             source == "none" or reproject or (layout is not None and self.nn_backend in ("auto", "screen")))
         if freeze:
@@ -422,7 +430,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         stats = PassStats(camera=camera, k=k if source != "none" else 0, geometry=geometry)
         # the store's points bucketed by their pixel in this film (traced: see bucket_by_pixel)
         buckets = _knn.bucket_by_pixel(*project(sensor_obj, prev), w * h) if reproject else None
-        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout, bool(zero_remainder), buckets, keep_offsets, candidates)
+        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout, bool(zero_remainder), buckets, keep_offsets, candidates, m_cap)
         t0 = _tic()
         if freeze:  # traced once per configuration, then replayed (no Python tracing, no codegen)
             try:
@@ -465,7 +473,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         return True
 
     def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, buckets, keep_offsets,
-              candidates, timings):
+              candidates, m_cap, timings):
         """The resampling pass on Dr.Jit values only (so it can be frozen): camera rays,
         streaming RIS, the neighbour search (``screen`` when frozen) and the combination.
         ``keep_offsets``: ``prev`` has this pass's lanes; each lane keeps its camera offset, so
@@ -524,7 +532,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         dr.eval(r, f_sel, phat_sel, le_vis, ray_weight)
         t1 = tic("ris", t0)
 
-        n_ok, cap = None, self.m_cap
+        n_ok, cap = None, m_cap
         if source != "none":
             src = prev if source == "temporal" else r
             exclude_self = source == "spatial"
