@@ -111,17 +111,17 @@ def shadow_edge_backward(
     sensor = scene.sensors()[sensor_index]
     tables = [_edges_of(np.asarray(m.faces_buffer(), np.uint32).tobytes()) for m in meshes]
     with dr.suspend_grad():
-        lengths = [float(dr.sum(_edge_lengths(m, t))[0]) for m, t in zip(meshes, tables)]
-    total = sum(lengths)
+        lengths = [np.asarray(_edge_lengths(m, t), np.float64) for m, t in zip(meshes, tables)]
+    total = sum(float(length.sum()) for length in lengths)
     if total <= 0 or samples < 1:
         return
     extent = float(dr.max(scene.bbox().extents()))
     for i, (mesh, table, length) in enumerate(zip(meshes, tables, lengths)):
-        n = max(1, round(samples * length / total))
+        n = max(1, round(samples * float(length.sum()) / total))
         guide = None if guides is None else guides.get(mesh.id())
         if guide is not None and guide.shape != (len(table.a), len(scene.emitters())):
             guide = None  # another mesh or light set: start afresh
-        found = _mesh_backward(scene, sensor, grad_in, mesh, table, n, mi.sample_tea_32(seed, i)[0], _EPS * extent, guide)
+        found = _mesh_backward(scene, sensor, grad_in, mesh, table, length, n, mi.sample_tea_32(seed, i)[0], _EPS * extent, guide)
         if guides is not None:
             guides[mesh.id()] = found if guide is None else (1 - GUIDE_MEMORY) * guide + GUIDE_MEMORY * found
 
@@ -140,8 +140,8 @@ def _pair_pmf(lengths: np.ndarray, light_pmf: np.ndarray, guide: np.ndarray | No
     return ((1 - GUIDE_DEFENSIVE) * guide / guide.sum() + GUIDE_DEFENSIVE * default).ravel()
 
 
-def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, n: int, seed: int, eps: float,
-                   guide: np.ndarray | None) -> np.ndarray:
+def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.ndarray, n: int, seed: int,
+                   eps: float, guide: np.ndarray | None) -> np.ndarray:
     """One mesh's samples (see :func:`shadow_edge_backward`); returns this step's estimate of
     ``sum |adjoint * contribution|`` per (edge, light) pair, for the guide."""
     film_w, film_h = (int(v) for v in sensor.film().crop_size())
@@ -152,13 +152,12 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, n: int, seed:
         # the (edge, light) pair by _pair_pmf, xB uniform along the edge
         ea, eb = mi.UInt32(table.a), mi.UInt32(table.b)
         pa, pb = mesh.vertex_position(ea), mesh.vertex_position(eb)
-        lengths = dr.norm(pb - pa)
         light_pmf = np.array([float(scene.pdf_emitter(j)[0]) for j in range(n_lights)])
-        pmf = _pair_pmf(np.asarray(lengths, np.float64), light_pmf, guide)
+        pmf = _pair_pmf(lengths, light_pmf, guide)
         pair_pick = mi.DiscreteDistribution(mi.Float(pmf.astype(np.float32)))
         pair, along = pair_pick.sample_reuse(sampler.next_1d())
         edge, emitter_index = pair // n_lights, pair % n_lights
-        inv_pdf_edge = dr.gather(mi.Float, lengths, edge) * pair_pick.sum() / pair_pick.eval_pmf(pair)
+        inv_pdf_edge = dr.gather(mi.Float, mi.Float(lengths.astype(np.float32)), edge) * pair_pick.sum() / pair_pick.eval_pmf(pair)
         a = dr.gather(mi.Point3f, pa, edge)
         b = dr.gather(mi.Point3f, pb, edge)
         tangent = dr.normalize(b - a)

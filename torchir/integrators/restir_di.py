@@ -125,6 +125,7 @@ import numpy as np
 from mitsuba.python.ad.integrators.common import RBIntegrator
 
 from .. import backend
+from ..scene import is_geometry_key
 from . import _knn, _shadow_edges
 from ._light import FORWARD_FLAGS, LightSample, Reservoirs, eval_target, rebuild_interaction, sample_candidate
 from ._scene_watch import EmitterWatch, GeometryWatch, as_tuples
@@ -278,6 +279,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self._emitter_watch = EmitterWatch()
         self.freeze = bool(cfg["freeze"])
         self._frozen_pass = None
+        self._boundary_integrators: dict[bool, mi.Integrator] = {}  # direct_projective, by `secondary`
+        self._edge_guides: dict[str, np.ndarray] = {}  # per mesh, see _shadow_edges.shadow_edge_backward
         self._geometry_watch = GeometryWatch()
         self._geometry_seen: tuple | None = None  # geometry at the last step
         self._geometry_frozen: tuple | None = None  # geometry the frozen pass was recorded with
@@ -318,7 +321,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         """Forget every sensor's reservoirs (the next step burns in again)."""
         self.states.clear()
         self.last.clear()
-        self.__dict__.pop("_edge_guides", None)
+        self._edge_guides.clear()
 
     def state(self, scene: mi.Scene, sensor: int) -> SensorState:
         sig = _signature(scene)
@@ -445,7 +448,9 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                                            else "lane" if keep_offsets and self.lane_chains else "screen")
         else:
             timings: dict[str, float] = {}
-            ray_weight, image, r, n_ok, zero = self._pass(mi.UInt32(seed), *args, timings)
+            # an opaque seed, as the frozen pass gets: a literal one compiles new kernels every
+            # step wherever the seed enters a kernel (the offsets' redraw hash did: 2 s a step)
+            ray_weight, image, r, n_ok, zero = self._pass(dr.opaque(mi.UInt32, seed), *args, timings)
             stats.timings = timings
         stats.zero = zero
         if source != "none":
@@ -504,11 +509,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             # hits); NaN: no offset stored (an older checkpoint)
             keep = dr.isfinite(prev.offset.x)
             if math.isfinite(self.offset_lifetime):  # a hash apart from the sampler's (its values fill redrawn lanes)
-                # an opaque seed: a literal one compiled a new kernel every step when not frozen
-                # (2 s a step at 32², measured)
-                seed_v = mi.UInt32(seed)
-                dr.make_opaque(seed_v)
-                keep &= mi.sample_tea_float32(lane, seed_v ^ 0x0FF5E7D0) * self.offset_lifetime >= 1.0
+                keep &= mi.sample_tea_float32(lane, seed ^ 0x0FF5E7D0) * self.offset_lifetime >= 1.0
             ray, ray_weight, offset = _sample_rays(sensor_obj, sampler, spp, w, h, prev.offset, keep)
         else:
             ray, ray_weight, offset = _sample_rays(sensor_obj, sampler, spp, w, h)
@@ -728,7 +729,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.boundary_integrator(secondary=not edges).render_backward(scene, params, grad_in, sensor, seed, spp)
         if edges:
             w, h = (int(v) for v in scene.sensors()[sensor].film().crop_size())
-            guides = self.__dict__.setdefault("_edge_guides", {}) if self.edge_guiding else None
+            guides = self._edge_guides if self.edge_guiding else None
             _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]), guides)
 
     def boundary_integrator(self, secondary: bool = True) -> mi.Integrator:
@@ -737,11 +738,10 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         ``occluded_lights`` (64², the blocker's shadow) the default octree guiding took 5.7 s a
         step against 0.06 s, for the same error x time (relative variance x seconds 0.48
         against 0.42) and the same mean."""
-        cache = self.__dict__.setdefault("_boundary", {})
-        if secondary not in cache:
+        if secondary not in self._boundary_integrators:
             options = {"type": "direct_projective", "sppc": 0, "guiding": "none"}
-            cache[secondary] = mi.load_dict(options if secondary else {**options, "sppi": 0})
-        return cache[secondary]
+            self._boundary_integrators[secondary] = mi.load_dict(options if secondary else {**options, "sppi": 0})
+        return self._boundary_integrators[secondary]
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
@@ -961,7 +961,7 @@ def _differentiated_meshes(scene: mi.Scene, params: Any) -> list:
     moves too (a transform, a sphere's centre or radius), whose shadow edges only Mitsuba's
     estimator covers."""
     moving = [name for name, value in (params or {}).items() if dr.grad_enabled(value)]
-    if any(name.rsplit(".", 1)[-1] in ("to_world", "center", "radius") for name in moving):
+    if any(is_geometry_key(name) and not name.endswith(".vertex_positions") for name in moving):
         return []
     names = {name[: -len(".vertex_positions")] for name in moving if name.endswith(".vertex_positions")}
     return [shape for shape in scene.shapes() if shape.id() in names]
