@@ -166,16 +166,16 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     scene, key = shadow_problem(a.resolution)
     plain, plain_key = shadow_problem(a.resolution, {"type": "direct_projective", "guiding": "none"})
     target = render(plain, {plain_key: torch.tensor([0.0])}, spp=a.target_spp, seed=7).detach()
-    for method in METHODS:  # compile every method's kernels before timing (a short burn-in)
-        s, k = (plain, plain_key) if method == "direct_projective" else (scene, key)
-        fit(s, k, target, a.starts[0], sampler_for(method, s, 1), a, 2, None)
     problems = {m: (plain, plain_key) if m == "direct_projective" else (scene, key) for m in METHODS}
+    for method in METHODS:  # compile every method's kernels before timing (a short burn-in)
+        s, k = problems[method]
+        fit(s, k, target, a.starts[0], sampler_for(method, s, 1), a, 2, None)
     spread = gradient_spread(problems, target, a)
     results: dict[str, list[dict[str, Any]]] = {m: [] for m in METHODS}
     for start in a.starts:
         budget = None
         for method in METHODS:
-            s, k = (plain, plain_key) if method == "direct_projective" else (scene, key)
+            s, k = problems[method]
             t0 = time.perf_counter()
             sampler = sampler_for(method, s, a.burn_in)
             run = fit(s, k, target, start, sampler, a, a.steps if budget is None else 4 * a.steps, budget)
