@@ -89,21 +89,15 @@ def test_shadow_edge_table_of_a_welded_box():
 
 
 def _restir_shadow_gradients(scene, key, v0, up, adjoint, n, edges):
-    from torchir.integrators.restir_di import ReSTIRDirectIntegrator
-
     sampler = ReSTIRSampler(scene, candidates=4, burn_in=2)
+    sampler.integrator.shadow_edge_sampling = edges
     grads = []
-    saved = ReSTIRDirectIntegrator.shadow_edge_sampling
-    ReSTIRDirectIntegrator.shadow_edge_sampling = edges
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the stage-v2 notice
-            for i in range(n):
-                dz = torch.zeros(1, requires_grad=True)
-                (render(scene, {key: v0 + dz * up}, spp=4, seed=100 + i, sampler=sampler) * adjoint).sum().backward()
-                grads.append(float(dz.grad))
-    finally:
-        ReSTIRDirectIntegrator.shadow_edge_sampling = saved
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the stage-v2 notice
+        for i in range(n):
+            dz = torch.zeros(1, requires_grad=True)
+            (render(scene, {key: v0 + dz * up}, spp=4, seed=100 + i, sampler=sampler) * adjoint).sum().backward()
+            grads.append(float(dz.grad))
     g = torch.tensor(grads)
     return float(g.mean()), float(g.std()) / n**0.5
 
