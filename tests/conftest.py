@@ -18,7 +18,7 @@ RES = 16  # every render test uses 16x16 so the kernels compile once
 LONGEST_FILES_FIRST = (
     "test_restir.py", "test_training_ddp.py", "test_restir_integrator.py", "test_extremes.py",
     "test_bench_restir.py", "test_photo_to_answer.py", "test_functions_pixels.py", "test_training.py",
-    "test_training_techniques.py", "test_bench_restir_shadow.py", "test_scenes_restir.py",
+    "test_training_techniques.py", "test_bench_restir_shadow.py", "test_scenes_restir.py", "test_primary_forms.py",
 )
 
 

@@ -7,7 +7,7 @@ reconstruction filter so pixel-subset renders define the same pixels as full ren
 Example:
     >>> import torchir
     >>> sorted(torchir.scenes.available())
-    ['ajar_painting', 'cbox', 'glossy_ball', 'glossy_highlight', 'many_lights', 'multiview', 'occluded_lights', 'oxalis_lite', 'painting', 'textured_wall']
+    ['ajar_painting', 'cbox', 'glossy_ball', 'glossy_highlight', 'many_lights', 'multiview', 'occluded_lights', 'oxalis_lite', 'painting', 'pig', 'textured_wall']
 """
 from __future__ import annotations
 
@@ -24,6 +24,7 @@ from . import (
     occluded_lights,
     oxalis_lite,
     painting,
+    pig,
     textured_wall,
 )
 
@@ -51,6 +52,7 @@ _REGISTRY = {
         BuiltinScene("ajar_painting", ajar_painting.DESCRIPTION, ajar_painting.build, ajar_painting.PARAMETERS),
         BuiltinScene("occluded_lights", occluded_lights.DESCRIPTION, occluded_lights.build, occluded_lights.PARAMETERS),
         BuiltinScene("many_lights", many_lights.DESCRIPTION, many_lights.build, many_lights.PARAMETERS),
+        BuiltinScene("pig", pig.DESCRIPTION, pig.build, pig.PARAMETERS),
     )
 }
 

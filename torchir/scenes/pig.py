@@ -1,0 +1,124 @@
+"""``pig``: a smooth diffuse blob above a floor, lit by one area light (paper 004, Fig. 8 "Pig").
+
+For: shape derivatives of the camera-ray term (the derivative image w.r.t. the blob's vertical
+displacement), and the primary-vertex forms compared in ``torchir.bench.restir_antithetic``.
+The ``pig`` is a closed, smooth-shaded mesh (an ellipsoid body with a snout and four stubby
+legs blended in, one connected surface whose shading is continuous, so the camera-ray term has
+no boundaries of its own) floating just above a grey floor; one square area light above and
+to the side lights it and casts its shadow on the floor. A box filter, as the paper's.
+Light transport: direct illumination only (``prb`` with ``max_depth=2``; ReSTIR renders the
+same light transport through ``render(..., sampler=ReSTIRSampler(scene))``).
+Typical unknown: the blob's vertical position (``pig.vertex_positions`` through
+:func:`torchir.derived.rigid_transform`, translation only).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import mitsuba as mi
+import numpy as np
+
+from ._common import perspective, resolution_hw
+
+DESCRIPTION = "smooth diffuse blob above a floor, one area light, box filter; direct illumination (prb, max_depth 2); recover its vertical position"
+PARAMETERS = ("pig.vertex_positions",)
+
+CENTER = (0.0, 0.0, 0.75)  # the blob's centre (the pivot of rigid transforms)
+
+
+def blob_vertices(rings: int, segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(vertices (V, 3), faces (F, 3))`` of the blob around the origin: a latitude-longitude
+    sphere (poles shared) displaced smoothly into a body, a snout and four legs."""
+    theta = np.linspace(0, np.pi, rings + 1)[1:-1]
+    phi = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    d = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
+    d = np.concatenate([[[0, 0, 1]], d, [[0, 0, -1]]])
+
+    def bump(center, width):
+        c = np.asarray(center, dtype=np.float64)
+        c /= np.linalg.norm(c)
+        return np.exp((d @ c - 1.0) / width)
+
+    radius = 1.0 + 0.35 * bump([1, 0, 0.1], 0.02)  # snout
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            radius += 0.3 * bump([0.55 * sx, 0.45 * sy, -0.7], 0.015)  # legs
+    v = d * radius[:, None] * np.array([0.75, 0.45, 0.42])
+    faces = []
+    ring = lambda i, j: 1 + i * segments + j % segments  # noqa: E731
+    for j in range(segments):
+        faces.append((0, ring(0, j), ring(0, j + 1)))
+        last = len(d) - 1
+        faces.append((last, ring(rings - 2, j + 1), ring(rings - 2, j)))
+        for i in range(rings - 2):
+            faces.append((ring(i, j), ring(i + 1, j), ring(i + 1, j + 1)))
+            faces.append((ring(i, j), ring(i + 1, j + 1), ring(i, j + 1)))
+    return v, np.array(faces, dtype=np.uint32)
+
+
+def blob_mesh(name: str, rings: int, segments: int, center, bsdf: dict[str, Any]) -> mi.Mesh:
+    """The blob as a smooth-shaded Mitsuba mesh centred at ``center``."""
+    v, f = blob_vertices(rings, segments)
+    props = mi.Properties()
+    props["bsdf"] = mi.load_dict(bsdf)
+    mesh = mi.Mesh(name, len(v), len(f), props, has_vertex_normals=True)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float((v + np.asarray(center)).astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(f.ravel())
+    params.update()
+    mesh.recompute_vertex_normals()
+    return mesh
+
+
+def build(resolution: int | tuple[int, int] | None = None, rings: int = 24, segments: int = 48, light_size: float = 1.0,
+          dome_lights: int = 0) -> dict[str, Any]:
+    """Mitsuba dict of the scene at ``resolution`` (default 64x64).
+
+    Args:
+        rings, segments: the blob's tessellation (latitude rings, longitude segments).
+        light_size: side of the square light (its power stays the same).
+        dome_lights: that many more small square lights (side 0.1) on a dome around the blob, of
+            random colours and powers spanning 100x, together as powerful as the main light:
+            light selection becomes the hard part, with nothing occluding the blob.
+    """
+    if dome_lights < 0:
+        raise ValueError(f"dome_lights must be >= 0, got {dome_lights}")
+    if not light_size > 0:
+        raise ValueError(f"light_size must be > 0, got {light_size}")
+    if rings < 3 or segments < 3:
+        raise ValueError(f"rings and segments must be >= 3, got {rings}, {segments}")
+    h, w = resolution_hw(resolution, 64)
+    T = mi.ScalarTransform4f
+    pink = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.45, 0.45]}}
+    scene = {
+        "type": "scene",
+        "integrator": {"type": "prb", "max_depth": 2},
+        "sensor": perspective([0.4, -3.2, 1.9], [0.0, 0.0, 0.55], [0, 0, 1], 38.0, h, w),
+        "floor": {
+            "type": "rectangle",
+            "to_world": T().scale([3.0, 3.0, 1.0]),
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}},
+        },
+        "pig": blob_mesh("pig", rings, segments, CENTER, pink),
+        # a square light (side light_size) at z = 3, up and to the left, facing the blob
+        "light": {
+            "type": "rectangle",
+            "to_world": T().look_at(origin=[-1.6, -1.0, 3.0], target=[0.0, 0.0, 0.6], up=[0, 0, 1]).scale(0.5 * light_size),
+            "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 25.0 / light_size**2}},
+        },
+    }
+    rng = np.random.default_rng(7)
+    powers = np.exp(rng.uniform(0.0, np.log(100.0), dome_lights))
+    powers *= 25.0 / powers.sum() if dome_lights else 1.0  # radiance x area: together as the main light
+    for i in range(dome_lights):
+        azimuth, elevation = rng.uniform(0, 2 * np.pi), rng.uniform(0.25, 1.2)
+        origin = [2.6 * np.cos(elevation) * np.cos(azimuth), 2.6 * np.cos(elevation) * np.sin(azimuth), 0.75 + 2.6 * np.sin(elevation)]
+        colour = rng.uniform(0.5, 1.0, 3)
+        scene[f"dome_{i}"] = {
+            "type": "rectangle",
+            "to_world": T().look_at(origin=origin, target=list(CENTER), up=[0, 0, 1]).scale(0.05),
+            # main light: radiance 25 over area light_size^2, so radiance x area = 25
+            "emitter": {"type": "area", "radiance": {"type": "rgb", "value": (powers[i] / 0.01 * colour / colour.mean()).tolist()}},
+        }
+    return scene
