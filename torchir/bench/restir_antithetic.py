@@ -32,7 +32,8 @@ optimisation).
 
 Usage:
     python -m torchir.bench.restir_antithetic --quick   # 48², 4 steps (< 1 min)
-    python -m torchir.bench.restir_antithetic           # 256², 12 steps (about 10 minutes)
+    python -m torchir.bench.restir_antithetic           # 256², 8 steps (several minutes)
+    python -m torchir.bench.restir_antithetic --resolution 128 --dome-lights 64 --steps 6   # hard light selection
 
 Writes ``<out>/results.json``, ``<out>/summary.md``, ``<out>/antithetic.png`` (error against
 seconds per step) and ``<out>/derivative_images.png``.
@@ -70,19 +71,19 @@ KEY, UP = "pig.vertex_positions", (0.0, 0.0, 1.0)
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--resolution", type=int, default=None, help="film size (default 256, quick 48)")
-    p.add_argument("--steps", type=int, default=None, help="scored steps per method (default 12, quick 4)")
+    p.add_argument("--steps", type=int, default=None, help="scored steps per method (default 8, quick 4)")
     p.add_argument("--candidates", type=int, default=4, help="light candidates per shading point")
     p.add_argument("--light-size", type=float, default=1.0, help="side of the pig scene's square light")
     p.add_argument("--dome-lights", type=int, default=0, help="small lights around the blob (pig's dome_lights: hard light selection)")
     p.add_argument("--warmup", type=int, default=4, help="untimed steps per method (burn-in, kernels)")
-    p.add_argument("--ref-spp", type=int, default=None, help="reference samples per pixel and pass (default 64, quick 16)")
+    p.add_argument("--ref-spp", type=int, default=None, help="reference samples per pixel and pass (default 16)")
     p.add_argument("--ref-passes", type=int, default=None, help="reference passes (default 8, quick 4)")
     p.add_argument("--out", default="results/bench_restir_antithetic")
     p.add_argument("--quick", action="store_true")
     a = p.parse_args(argv)
     a.resolution = a.resolution or (48 if a.quick else 256)
-    a.steps = a.steps or (4 if a.quick else 12)
-    a.ref_spp = a.ref_spp or (16 if a.quick else 64)
+    a.steps = a.steps or (4 if a.quick else 8)
+    a.ref_spp = a.ref_spp or 16
     a.ref_passes = a.ref_passes or (4 if a.quick else 8)
     return a
 

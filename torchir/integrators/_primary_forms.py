@@ -28,6 +28,9 @@ one scene.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -151,14 +154,13 @@ def _derivative_image(integrator, scene, theta, sensor, sensor_obj, seed, spp, f
     total = dr.zeros(mi.Color3f, n)
     with dr.suspend_grad():
         interior = [corner + (offset if t == 0 else 1.0 - offset) for t in range(members)]
-    for s, contrib in _shade_group(integrator, scene, sensor_obj, interior, light_seeds[0], seed, prev, radius, shared):
-        si, f_w = contrib
+    for m in _shade(integrator, scene, sensor_obj, interior, light_seeds[0], seed, prev, radius, shared):
         if form == "attached":
-            total += f_w(si(attached=True))
+            total += m.contribution(m.point(attached=True))
         else:
-            si_m = si(attached=False)
-            j = jacobian(si_m.p, si_m.dp_du, si_m.dp_dv)
-            total += f_w(si_m) * j / dr.detach(dr.select(j > 0, j, 1.0))
+            si = m.point(attached=False)
+            j = jacobian(si.p, si.dp_du, si.dp_dv)
+            total += m.contribution(si) * j / dr.detach(dr.select(j > 0, j, 1.0))
     if form == "material":
         with dr.suspend_grad():
             side = mi.UInt32(dr.minimum(edge_u.x * 4.0, 3.0))  # 0 left, 1 right, 2 top, 3 bottom
@@ -172,11 +174,10 @@ def _derivative_image(integrator, scene, theta, sensor, sensor_obj, seed, spp, f
                 points.append(corner + dr.select(vertical, mi.Vector2f(far, t), mi.Vector2f(t, far)))
                 sign = 2.0 * far - 1.0
                 normals.append(dr.select(vertical, mi.Vector2f(sign, 0.0), mi.Vector2f(0.0, sign)))
-        for (s, contrib), normal in zip(_shade_group(integrator, scene, sensor_obj, points, light_seeds[1], seed, prev, radius, shared), normals):
-            si, f_w = contrib
-            si_m = si(attached=False)
-            flux = dr.detach(f_w(si_m))
-            total += -flux * dr.dot(project(si_m.p), normal) / _EDGE_PDF
+        for m, normal in zip(_shade(integrator, scene, sensor_obj, points, light_seeds[1], seed, prev, radius, shared), normals):
+            si = m.point(attached=False)
+            flux = dr.detach(m.contribution(si))
+            total += -flux * dr.dot(project(si.p), normal) / _EDGE_PDF  # d/dθ: -L (v . n) / pdf
     total /= members
     dr.forward_from(theta)
     grad = dr.grad(total)
@@ -184,61 +185,68 @@ def _derivative_image(integrator, scene, theta, sensor, sensor_obj, seed, spp, f
     return mi.TensorXf(dr.ravel(mi.Color3f(*chans)), shape=(h, w, 3))
 
 
-def _shade_group(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, prev, radius, shared):
-    """Resample a light sample at each member's shading point (screen positions in pixels):
-    the members draw the same random numbers, and with ``prev`` combine with one member's
-    neighbours (``shared``) or each with its own. Yields ``(s, (si, f_w))`` per member, with
-    ``si(attached)`` its differentiable shading point and ``f_w(si) = Le + f(y) W``."""
+@dataclass
+class _Member:
+    """One member of an antithetic group: its camera ray and first hit, and the reservoir (the
+    chosen light sample ``r.y`` and its weight ``r.W``) resampled there."""
+
+    scene: mi.Scene
+    ray: mi.Ray3f
+    hit: mi.PreliminaryIntersection3f
+    si: mi.SurfaceInteraction3f  # detached, for resampling
+    sampler: mi.Sampler
+    r: Any  # Reservoirs
+    f: mi.Color3f
+    phat: mi.Float
+
+    def point(self, attached: bool) -> mi.SurfaceInteraction3f:
+        """The differentiable shading point: sliding along the ray, or fixed on the surface."""
+        flags = mi.RayFlags.All if attached else mi.RayFlags.All | mi.RayFlags.FollowShape
+        with dr.resume_grad():
+            return self.hit.compute_surface_interaction(self.ray, flags, self.r.valid)
+
+    def contribution(self, si: mi.SurfaceInteraction3f) -> mi.Color3f:
+        """``Le + f(y) W`` at ``si``, with the sample and ``W`` held constant (R18)."""
+        with dr.resume_grad():
+            f, _ = eval_target(self.scene, si, self.r.y, self.r.valid & (self.r.W > 0), visibility=False)
+            return si.emitter(self.scene).eval(si, self.r.valid) + f * self.r.W
+
+
+def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, prev, radius, shared) -> list[_Member]:
+    """Resample a light sample at each member's shading point (screen positions in pixels).
+    The members draw the same random numbers; with ``prev`` each combines with its own nearest
+    reservoirs, or (``shared``) all with those found for one member drawn at random (Eq. 29)."""
     w, h = (int(v) for v in sensor_obj.film().crop_size())
     n = dr.width(screen_points[0].x)
-    shaded = []
+    members = []
     with dr.suspend_grad():
         for s in screen_points:
             ray, _ = sensor_obj.sample_ray(0.0, 0.0, s * dr.rcp(mi.ScalarVector2f(w, h)), mi.Point2f(0.5))
-            pi = scene.ray_intersect_preliminary(ray, coherent=True)
-            si = pi.compute_surface_interaction(ray, FORWARD_FLAGS)
+            hit = scene.ray_intersect_preliminary(ray, coherent=True)
+            si = hit.compute_surface_interaction(ray, FORWARD_FLAGS)
             valid = si.is_valid()
             sampler = mi.load_dict({"type": "independent"})
-            sampler.seed(dr.opaque(mi.UInt32, light_seed), n)
-            y, f_sel, phat_sel, w_sum, _ = integrator._streaming_ris(scene, si, sampler, valid, n, False, integrator.candidates)
+            sampler.seed(dr.opaque(mi.UInt32, light_seed), n)  # the same numbers for every member
+            y, f, phat, w_sum, _ = integrator._streaming_ris(scene, si, sampler, valid, n, False, integrator.candidates)
             m0 = dr.select(valid, mi.Float(integrator.candidates), 0.0)
             r = dr.zeros(Reservoirs(), n)
             r.y, r.w_sum, r.M, r.valid = y, w_sum, m0, valid
-            r.W = dr.select(phat_sel > 0, w_sum / (m0 * dr.select(phat_sel > 0, phat_sel, 1.0)), 0.0)
+            r.W = dr.select(phat > 0, w_sum / (m0 * dr.select(phat > 0, phat, 1.0)), 0.0)  # (R5)
             r.p, r.n = si.p, mi.Vector3f(si.sh_frame.n)
-            r.shape, r.prim, r.prim_uv, r.o, r.d, r.t = pi.shape_index, pi.prim_index, pi.prim_uv, ray.o, ray.d, pi.t
-            shaded.append([s, ray, pi, si, sampler, r, f_sel, phat_sel])
+            r.shape, r.prim, r.prim_uv, r.o, r.d, r.t = hit.shape_index, hit.prim_index, hit.prim_uv, ray.o, ray.d, hit.t
+            members.append(_Member(scene, ray, hit, si, sampler, r, f, phat))
         if prev is not None and integrator.reuse:
             k = integrator.neighbors
-            found = [integrator._neighbour_search(prev.p, prev.valid, m[5].p, m[5].valid, k, radius) for m in shaded]
-            if shared and len(shaded) > 1:
-                pick = mi.sample_tea_32(dr.arange(mi.UInt32, n), dr.opaque(mi.UInt32, pick_seed))[0] % len(shaded)
-                nbr = [found[0][0][i] for i in range(k)]
-                ok = [found[0][1][i] for i in range(k)]
-                for t in range(1, len(shaded)):
-                    nbr = [dr.select(pick == t, found[t][0][i], nbr[i]) for i in range(k)]
-                    ok = [dr.select(pick == t, found[t][1][i], ok[i]) for i in range(k)]
-                found = [(nbr, ok)] * len(shaded)
-            for m, (nbr, ok) in zip(shaded, found):
-                r = m[5]
-                ok = [o & r.valid & (dr.dot(dr.gather(mi.Vector3f, prev.n, j, o), r.n) >= integrator.normal_threshold)
-                      for j, o in zip(nbr, ok)]
-                m[5], m[6], m[7], _ = integrator._combine(scene, m[4], m[3], r, m[6], m[7], prev, nbr, ok, integrator.m_cap)
-    for s, ray, pi, si, sampler, r, f_sel, phat_sel in shaded:
-        yield s, (_interaction(scene, ray, pi, r.valid), _lit(scene, r))
-
-
-def _interaction(scene, ray, pi, valid):
-    def si(attached: bool) -> mi.SurfaceInteraction3f:
-        flags = mi.RayFlags.All if attached else mi.RayFlags.All | mi.RayFlags.FollowShape
-        with dr.resume_grad():
-            return pi.compute_surface_interaction(ray, flags, valid)
-    return si
-
-
-def _lit(scene, r):
-    def f_w(si) -> mi.Color3f:
-        with dr.resume_grad():
-            f, _ = eval_target(scene, si, r.y, r.valid & (r.W > 0), visibility=False)
-            return si.emitter(scene).eval(si, r.valid) + f * r.W
-    return f_w
+            found = [integrator._neighbour_search(prev.p, prev.valid, m.r.p, m.r.valid, k, radius) for m in members]
+            if shared and len(members) > 1:
+                pick = mi.sample_tea_32(dr.arange(mi.UInt32, n), dr.opaque(mi.UInt32, pick_seed))[0] % len(members)
+                nbr, ok = found[0]
+                for t in range(1, len(members)):
+                    nbr = [dr.select(pick == t, a, b) for a, b in zip(found[t][0], nbr)]
+                    ok = [dr.select(pick == t, a, b) for a, b in zip(found[t][1], ok)]
+                found = [(nbr, ok)] * len(members)
+            for m, (nbr, ok) in zip(members, found):
+                ok = [o & m.r.valid & (dr.dot(dr.gather(mi.Vector3f, prev.n, j, o), m.r.n) >= integrator.normal_threshold)
+                      for j, o in zip(nbr, ok)]  # the normal test, at each member's own point
+                m.r, m.f, m.phat, _ = integrator._combine(scene, m.sampler, m.si, m.r, m.f, m.phat, prev, nbr, ok, integrator.m_cap)
+    return members
