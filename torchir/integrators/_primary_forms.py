@@ -21,10 +21,7 @@ The forms agree in expectation wherever a pixel holds no visibility boundary; si
 shadow edges are separate terms (``direct_projective``, :mod:`._shadow_edges`), not estimated
 here. Light samples come from the ReSTIR integrator's own RIS and combination; ``W`` and the
 chosen sample are constants (R18), as in its backward pass; ``θ`` is differentiated in
-forward mode. Known limit: while a scene it was called on is alive, a call on another scene
-fails in Dr.Jit's forward traversal ("outside of the current dr.isolate_grad() scope"); repeated
-calls on one scene work, and so does another scene once the first is freed. The benchmark uses
-one scene.
+forward mode.
 """
 from __future__ import annotations
 
@@ -119,7 +116,9 @@ def derivative_image(
     params = mi.traverse(scene)
     if key not in params or not key.endswith("vertex_positions"):
         raise KeyError(f"{key!r} is not a mesh's vertex_positions in this scene")
-    old = params[key]
+    # a new handle on the same Dr.Jit variable: SceneParameters assigns in place, so the handle
+    # params[key] returns would itself become the bound value
+    old = dr.detach(params[key])
     count = dr.width(old) // 3
     v = np.asarray(velocity, dtype=np.float32)
     if v.shape == (3,):
