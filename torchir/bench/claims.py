@@ -80,6 +80,12 @@ CLAIMS: list[Claim] = [
           lambda r: _restir_row(r, "ajar_painting")["train_step_ratio_to_direct"], lambda v: v <= 3),
     Claim("restir_views", "multi-view: error² x time, per-sensor chains / carry-over store (burn-in 32)", "carry-over (Alg. 8)",
           "> 1x", lambda r: _views_efficiency(r, 32), lambda v: v > 1),
+    Claim("restir_antithetic", "derivative image error at equal time, antithetic with independent / shared reservoirs (pig)",
+          "lower (Fig. 8e vs 8d, images only)", ">= 3x",
+          lambda r: _antithetic_ratio(r, "material, ReSTIR, antithetic"), lambda v: v >= 3),
+    Claim("restir_antithetic", "derivative image error at equal time, no antithetic / antithetic with shared reservoirs (pig)",
+          "lower (Fig. 8e vs 8c, images only)", ">= 10x",
+          lambda r: _antithetic_ratio(r, "material, ReSTIR"), lambda v: v >= 10),
     Claim("soak", "largest memory growth after warm-up, any technique", "-", "< 5%",
           lambda r: 100 * max(t["memory_growth"] for t in r), lambda v: v < 5, unit="%"),
     Claim("soak", "kernel-cache misses after warm-up, all techniques", "-", "0",
@@ -103,6 +109,12 @@ def _scaleup_reach(r: dict, workload: str, reference: str) -> float:
     row = next(x for x in r["summary"][workload] if x["config"] == "adaptive 5%, decay")
     value, hit, _ = row[f"reach {reference}"]
     return value if hit else float("inf")
+
+
+def _antithetic_ratio(r: dict, method: str) -> float:
+    """``method``'s equal-time error over shared-reservoir antithetic sampling's (restir_antithetic)."""
+    errors = {name: row["equal_time_error"] for name, row in r["methods"].items()}
+    return errors[method] / errors["material, ReSTIR, antithetic, shared"]
 
 
 def _restir_row(r: dict, scene: str, method: str = "ReSTIR (shadowed)") -> dict:
