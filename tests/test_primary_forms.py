@@ -17,6 +17,7 @@ from torchir.bench.restir_antithetic import scored_pixels  # noqa: E402
 from torchir.integrators._primary_forms import derivative_image, screen_projection  # noqa: E402
 from torchir.integrators.restir_di import ReSTIRDirectIntegrator  # noqa: E402
 from torchir.scenes import pig  # noqa: E402
+from torchir.scenes._common import triangle_mesh  # noqa: E402
 
 RES, KEY, UP = 20, "terrain.vertex_positions", (0.0, 0.0, 1.0)
 
@@ -32,14 +33,8 @@ def terrain_scene(res: int, grid: int = 24) -> mi.Scene:
     i = np.arange(grid * grid).reshape(grid, grid)
     a, b, c, d = i[:-1, :-1].ravel(), i[:-1, 1:].ravel(), i[1:, 1:].ravel(), i[1:, :-1].ravel()
     faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]).astype(np.uint32)
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.5, 0.4]}})
-    mesh = mi.Mesh("terrain", len(v), len(faces), props, has_vertex_normals=True)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(v.ravel())
-    params["faces"] = mi.UInt32(faces.ravel())
-    params.update()
-    mesh.recompute_vertex_normals()
+    mesh = triangle_mesh("terrain", v, faces, {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.5, 0.4]}},
+                         smooth=True)
     T = mi.ScalarTransform4f
     return mi.load_dict({
         "type": "scene",
@@ -53,7 +48,7 @@ def terrain_scene(res: int, grid: int = 24) -> mi.Scene:
 
 
 @pytest.fixture(scope="module")
-def blob():
+def sheet():
     """``(scene, scored mask, finite-difference derivative over the mask, its standard error)``."""
     scene = terrain_scene(RES)
     mask = scored_pixels(scene, "terrain")
@@ -81,8 +76,8 @@ def _sums(scene, mask, n: int, **kwargs) -> np.ndarray:
                      for i in range(n)])
 
 
-def test_projection_puts_hit_points_back_on_their_film_positions(blob):
-    scene = blob[0]
+def test_projection_puts_hit_points_back_on_their_film_positions(sheet):
+    scene = sheet[0]
     sensor = scene.sensors()[0]
     project, jacobian = screen_projection(sensor)
     film = np.array([[3.25, 7.5], [10.0, 10.0], [17.8, 16.1], [0.5, 19.5]], np.float32)
@@ -99,18 +94,18 @@ def test_projection_puts_hit_points_back_on_their_film_positions(blob):
 
 
 @pytest.mark.parametrize("form, antithetic", [("attached", False), ("material", True)])
-def test_camera_ray_term_agrees_with_finite_differences(blob, form, antithetic):
-    scene, mask, fd, fd_se = blob
+def test_camera_ray_term_agrees_with_finite_differences(sheet, form, antithetic):
+    scene, mask, fd, fd_se = sheet
     sums = _sums(scene, mask, 8, spp=8, form=form, antithetic=antithetic)
     se = float(np.hypot(sums.std(ddof=1) / np.sqrt(len(sums)), fd_se))
-    assert abs(fd) > 10 * se  # the blob's shading moves: a derivative the test resolves
+    assert abs(fd) > 10 * se  # the sheet's shading moves: a derivative the test resolves
     assert abs(sums.mean() - fd) < 4 * se, (sums.mean(), fd, se)
 
 
-def test_antithetic_pairs_cancel_the_pixel_edge_fluxes(blob):
+def test_antithetic_pairs_cancel_the_pixel_edge_fluxes(sheet):
     """Without antithetic sampling the material form's edge fluxes do not cancel: its spread
     over the same samples' budget is far larger (measured: 10x at 48²)."""
-    scene, mask, _, _ = blob
+    scene, mask, _, _ = sheet
     plain = _sums(scene, mask, 8, spp=4, form="material")
     paired = _sums(scene, mask, 8, spp=2, form="material", antithetic=True)  # the same shading points
     assert plain.std() > 3 * paired.std(), (plain.std(), paired.std())
@@ -121,11 +116,11 @@ def test_antithetic_pairs_cancel_the_pixel_edge_fluxes(blob):
     pytest.param("material", True, False, marks=pytest.mark.slow),
     ("material", True, True),
 ])
-def test_reused_reservoirs_keep_the_estimate_unbiased(blob, form, antithetic, shared):
+def test_reused_reservoirs_keep_the_estimate_unbiased(sheet, form, antithetic, shared):
     """With reservoirs of an earlier step combined (for an antithetic pair: independently per
     point, or one neighbour set for the pair, Eq. 29) the estimate still agrees with finite
     differences."""
-    scene, mask, fd, fd_se = blob
+    scene, mask, fd, fd_se = sheet
     integrator = ReSTIRDirectIntegrator(candidates=2, neighbors=2, burn_in=2)
     _, cache = integrator.step(scene, 0, 0, 1, zero_remainder=False)
     assert cache.prev is not None
@@ -135,11 +130,11 @@ def test_reused_reservoirs_keep_the_estimate_unbiased(blob, form, antithetic, sh
     assert abs(sums.mean() - fd) < 4 * se, (sums.mean(), fd, se)
 
 
-def test_vertices_are_restored(blob):
+def test_vertices_are_restored(sheet):
     """The same Dr.Jit variable, without gradients, is back in the scene after a call (so the
     integrator sees no geometry change), and a second scene can be differentiated while the
     first lives (a vertex array left bound to θ broke Dr.Jit's traversal there)."""
-    scene = blob[0]
+    scene = sheet[0]
     index = mi.traverse(scene)[KEY].index
     integrator = ReSTIRDirectIntegrator(candidates=2, temporal=False, spatial=False)
     derivative_image(integrator, scene, KEY, UP, form="material", antithetic=True)
@@ -150,8 +145,8 @@ def test_vertices_are_restored(blob):
     assert d.shape == (8, 8, 3) and np.isfinite(d).all() and np.abs(d).max() > 0
 
 
-def test_a_dark_scene_has_a_zero_derivative(blob):
-    scene = blob[0]
+def test_a_dark_scene_has_a_zero_derivative(sheet):
+    scene = sheet[0]
     params = mi.traverse(scene)
     key = "light.emitter.radiance.value"
     lit = mi.Color3f(params[key])
@@ -167,8 +162,8 @@ def test_a_dark_scene_has_a_zero_derivative(blob):
         params.update()
 
 
-def test_bad_arguments_are_named(blob):
-    scene = blob[0]
+def test_bad_arguments_are_named(sheet):
+    scene = sheet[0]
     integrator = ReSTIRDirectIntegrator(candidates=2, temporal=False, spatial=False)
     with pytest.raises(ValueError, match="form must be one of"):
         derivative_image(integrator, scene, KEY, UP, form="psdr")

@@ -33,7 +33,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._light import FORWARD_FLAGS, Reservoirs, eval_target
+from ._light import FORWARD_FLAGS, eval_target
+from .restir_di import _develop, fresh_reservoirs
 
 __all__ = ["FORMS", "derivative_image", "screen_projection"]
 
@@ -189,9 +190,7 @@ def _derivative_image(integrator, scene, theta, sensor, sensor_obj, seed, spp, f
             total += -flux * dr.dot(project(si.p), normal) / _EDGE_PDF  # d/dθ: -L (v . n) / pdf
     total /= members
     dr.forward_from(theta)
-    grad = dr.grad(total)
-    chans = [dr.block_sum(c, spp) / spp if spp > 1 else mi.Float(c) for c in (grad.x, grad.y, grad.z)]
-    return mi.TensorXf(dr.ravel(mi.Color3f(*chans)), shape=(h, w, 3))
+    return _develop(dr.grad(total), spp, h, w)
 
 
 @dataclass
@@ -237,12 +236,7 @@ def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, 
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(dr.opaque(mi.UInt32, light_seed), n)  # the same numbers for every member
             y, f, phat, w_sum, _ = integrator._streaming_ris(scene, si, sampler, valid, n, False, integrator.candidates)
-            m0 = dr.select(valid, mi.Float(integrator.candidates), 0.0)
-            r = dr.zeros(Reservoirs(), n)
-            r.y, r.w_sum, r.M, r.valid = y, w_sum, m0, valid
-            r.W = dr.select(phat > 0, w_sum / (m0 * dr.select(phat > 0, phat, 1.0)), 0.0)  # (R5)
-            r.p, r.n = si.p, mi.Vector3f(si.sh_frame.n)
-            r.shape, r.prim, r.prim_uv, r.o, r.d, r.t = hit.shape_index, hit.prim_index, hit.prim_uv, ray.o, ray.d, hit.t
+            r = fresh_reservoirs(ray, hit, si, valid, y, w_sum, phat, integrator.candidates)
             members.append(_Member(scene, ray, hit, si, sampler, r, f, phat))
         if prev is not None and integrator.reuse:
             k = integrator.neighbors
@@ -255,7 +249,6 @@ def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, 
                     ok = [dr.select(pick == t, a, b) for a, b in zip(found[t][1], ok)]
                 found = [(nbr, ok)] * len(members)
             for m, (nbr, ok) in zip(members, found):
-                ok = [o & m.r.valid & (dr.dot(dr.gather(mi.Vector3f, prev.n, j, o), m.r.n) >= integrator.normal_threshold)
-                      for j, o in zip(nbr, ok)]  # the normal test, at each member's own point
+                ok = integrator.normal_test(prev, nbr, [o & m.r.valid for o in ok], m.r.n)  # at each member's own point
                 m.r, m.f, m.phat, _ = integrator._combine(scene, m.sampler, m.si, m.r, m.f, m.phat, prev, nbr, ok, integrator.m_cap)
     return members

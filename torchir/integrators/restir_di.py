@@ -523,13 +523,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if not self.shadowed:  # one shadow ray for the chosen candidate; W = 0 when occluded
             seen = _visible(scene, si, y, valid & (phat_sel > 0))
             w_sum, f_sel = dr.select(seen, w_sum, 0.0), dr.select(seen, f_sel, 0.0)
-        m0 = dr.select(valid, mi.Float(candidates), 0.0)
-        r = dr.zeros(Reservoirs(), n)
-        r.y, r.w_sum, r.M = y, w_sum, m0
-        r.W = dr.select(phat_sel > 0, w_sum / (m0 * dr.select(phat_sel > 0, phat_sel, 1.0)), 0.0)  # (R5)
-        r.shape, r.prim, r.prim_uv = pi.shape_index, pi.prim_index, pi.prim_uv
-        r.o, r.d, r.t, r.offset = ray.o, ray.d, pi.t, offset
-        r.p, r.n, r.valid = si.p, mi.Vector3f(si.sh_frame.n), valid
+        r = fresh_reservoirs(ray, pi, si, valid, y, w_sum, phat_sel, candidates, offset)
         dr.eval(r, f_sel, phat_sel, le_vis, ray_weight)
         t1 = tic("ris", t0)
 
@@ -559,9 +553,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             else:
                 nbr, ok = self._neighbour_search(src.p, src.valid, r.p, r.valid, k, radius,
                                                  exclude_self=exclude_self, layout=layout, windows=windows)
-            for i in range(len(ok)):  # the normal test (spec §3.6)
-                n_src = dr.gather(mi.Vector3f, src.n, nbr[i], ok[i])
-                ok[i] = ok[i] & (dr.dot(n_src, r.n) >= self.normal_threshold)
+            ok = self.normal_test(src, nbr, ok, r.n)
             dr.eval(nbr, ok)
             t2 = tic("nn", t1)
             same_point = own_chain and self.shadowed and self.same_point_visibility
@@ -613,6 +605,11 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         w0 = n0 * inv_pc0 / candidates
         w0 = dr.select(_visible(scene, si, y0, valid & (w0 > 0)), w0, 0.0)  # V = 0: no gradient
         return y, f_sel, phat_sel, w_sum, (y0, w0)
+
+    def normal_test(self, source, nbr: list, ok: list, n: mi.Vector3f) -> list:
+        """``ok`` without the neighbours ``source[nbr]`` whose normal is off the query normal
+        ``n`` by more than ``normal_threshold`` (spec §3.6)."""
+        return [o & (dr.dot(dr.gather(mi.Vector3f, source.n, j, o), n) >= self.normal_threshold) for j, o in zip(nbr, ok)]
 
     def _combine(self, scene, sampler, si, r, f_sel, phat_sel, source, nbr, ok, m_cap: float, same_point: bool = False):
         """Bitterli's unbiased 1/Z combination with M capping at ``m_cap`` (R6-R9; corrects
@@ -883,6 +880,23 @@ def _footprints(scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int, w: int,
     if len(vals) == 0:
         return 1e-2, 5e-3
     return float(2.0 * np.median(vals)), float(np.percentile(vals, 5))
+
+
+def fresh_reservoirs(ray, pi, si, valid: mi.Bool, y, w_sum: mi.Float, phat: mi.Float, candidates: int,
+                     offset: mi.Point2f | None = None):
+    """The reservoirs of streaming RIS over ``candidates`` at the first hits ``(pi, si)`` of
+    camera rays ``ray``: the chosen sample ``y`` with ``W = w_sum / (M p̂(y))`` (R5), and the
+    shading point stored to be found and rebuilt (``offset``: its position in the pixel)."""
+    m0 = dr.select(valid, mi.Float(candidates), 0.0)
+    r = dr.zeros(Reservoirs(), dr.width(valid))
+    r.y, r.w_sum, r.M = y, w_sum, m0
+    r.W = dr.select(phat > 0, w_sum / (m0 * dr.select(phat > 0, phat, 1.0)), 0.0)  # (R5)
+    r.shape, r.prim, r.prim_uv = pi.shape_index, pi.prim_index, pi.prim_uv
+    r.o, r.d, r.t = ray.o, ray.d, pi.t
+    if offset is not None:
+        r.offset = offset
+    r.p, r.n, r.valid = si.p, mi.Vector3f(si.sh_frame.n), valid
+    return r
 
 
 def _develop(contrib: mi.Color3f, spp: int, h: int, w: int) -> mi.TensorXf:

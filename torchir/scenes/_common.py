@@ -80,11 +80,19 @@ def welded_box(name: str, to_world: mi.ScalarTransform4f, bsdf: dict[str, Any]) 
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
     m = np.array(to_world.matrix, dtype=np.float64)
     corners = corners @ m[:3, :3].T + m[:3, 3]
+    return triangle_mesh(name, corners, np.array(_BOX_FACES, dtype=np.uint32), bsdf)
+
+
+def triangle_mesh(name: str, vertices: np.ndarray, faces: np.ndarray, bsdf: dict[str, Any], smooth: bool = False) -> mi.Mesh:
+    """A Mitsuba mesh from ``vertices`` (V, 3) and ``faces`` (F, 3); ``smooth``: per-vertex
+    normals (area-weighted from the faces), else flat shading."""
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(bsdf)
-    mesh = mi.Mesh(name, len(corners), len(_BOX_FACES), props)
+    mesh = mi.Mesh(name, len(vertices), len(faces), props, has_vertex_normals=smooth)
     params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(corners.astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(np.array(_BOX_FACES, dtype=np.uint32).ravel())
+    params["vertex_positions"] = mi.Float(np.asarray(vertices, dtype=np.float32).ravel())
+    params["faces"] = mi.UInt32(np.asarray(faces, dtype=np.uint32).ravel())
     params.update()
+    if smooth:
+        mesh.recompute_vertex_normals()
     return mesh

@@ -18,7 +18,7 @@ from typing import Any
 import mitsuba as mi
 import numpy as np
 
-from ._common import perspective, resolution_hw
+from ._common import perspective, resolution_hw, triangle_mesh
 
 DESCRIPTION = "smooth diffuse blob above a floor, one area light, box filter; direct illumination (prb, max_depth 2); recover its vertical position"
 PARAMETERS = ("pig.vertex_positions",)
@@ -60,15 +60,7 @@ def blob_vertices(rings: int, segments: int) -> tuple[np.ndarray, np.ndarray]:
 def blob_mesh(name: str, rings: int, segments: int, center, bsdf: dict[str, Any]) -> mi.Mesh:
     """The blob as a smooth-shaded Mitsuba mesh centred at ``center``."""
     v, f = blob_vertices(rings, segments)
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict(bsdf)
-    mesh = mi.Mesh(name, len(v), len(f), props, has_vertex_normals=True)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float((v + np.asarray(center)).astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(f.ravel())
-    params.update()
-    mesh.recompute_vertex_normals()
-    return mesh
+    return triangle_mesh(name, v + np.asarray(center), f, bsdf, smooth=True)
 
 
 def build(resolution: int | tuple[int, int] | None = None, rings: int = 24, segments: int = 48, light_size: float = 1.0,
