@@ -164,19 +164,15 @@ def test_edge_guide_keeps_every_pair_and_mixes_by_length():
     assert guided[1] == pytest.approx(1 - GUIDE_DEFENSIVE + GUIDE_DEFENSIVE * 0.125)
 
 
-def test_guided_edge_samples_stay_unbiased_with_less_variance():
-    """shadow_edge_backward at a fixed adjoint (the blocker's rotation at 10 degrees, 64², 1 edge
-    sample per pixel), 48 steps each: guided by the earlier steps' samples, the mean must agree
-    with the by-length mean within 4 s.e. and the sd must drop by more than 1.5x (measured 2.5x;
-    with 48 steps the log of the sd ratio has an s.e. of about 0.2)."""
+def _blocker_at_10_degrees(res: int):
+    """``occluded_lights`` with the blocker turned 10 degrees about z (``pose(theta)`` sets it)
+    and the adjoint ``2 (image - target)`` of the L2 loss against the pose at 0."""
     import math
 
     import drjit as dr
 
-    from torchir.integrators import _shadow_edges
     from torchir.scenes import occluded_lights
 
-    res = 64
     scene = mi.load_dict(occluded_lights.build(resolution=res))
     params = mi.traverse(scene)
     key = "blocker.vertex_positions"
@@ -192,19 +188,57 @@ def test_guided_edge_samples_stay_unbiased_with_less_variance():
     target = mi.render(scene, spp=64, seed=1)
     pose(mi.Float(math.radians(10.0)))
     adjoint = mi.TensorXf(2.0 * (mi.render(scene, spp=64, seed=2).array - target.array), target.shape)
-    blocker = [s for s in scene.shapes() if s.id() == "blocker"]
+    return scene, pose, adjoint, [s for s in scene.shapes() if s.id() == "blocker"]
 
-    def run(guides):
-        out = []
-        for i in range(52):
-            theta = mi.Float(math.radians(10.0))
-            dr.enable_grad(theta)
-            pose(theta)
-            _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, res * res, 100 + i, guides)
-            out.append(dr.grad(theta)[0])
-        return np.array(out[4:])  # the guide's first steps left out
 
-    plain, guided = run(None), run({})
+def _edge_gradients(scene, pose, adjoint, blocker, samples: int, steps: int, guides=None, candidates: int = 1):
+    """The rotation's shadow-edge derivative at 10 degrees from ``steps`` calls (seeds 100...)."""
+    import math
+
+    import drjit as dr
+
+    from torchir.integrators import _shadow_edges
+
+    out = []
+    for i in range(steps):
+        theta = mi.Float(math.radians(10.0))
+        dr.enable_grad(theta)
+        pose(theta)
+        _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, samples, 100 + i, guides, candidates)
+        out.append(dr.grad(theta)[0])
+    return np.array(out)
+
+
+def test_guided_edge_samples_stay_unbiased_with_less_variance():
+    """shadow_edge_backward at a fixed adjoint (the blocker's rotation at 10 degrees, 64², 1 edge
+    sample per pixel), 48 steps each: guided by the earlier steps' samples, the mean must agree
+    with the by-length mean within 4 s.e. and the sd must drop by more than 1.5x (measured 2.5x;
+    with 48 steps the log of the sd ratio has an s.e. of about 0.2)."""
+    import math
+
+    res = 64
+    problem = _blocker_at_10_degrees(res)
+    plain = _edge_gradients(*problem, res * res, 52)[4:]
+    guided = _edge_gradients(*problem, res * res, 52, guides={})[4:]  # the guide's first steps left out
     se = math.sqrt((plain.var(ddof=1) + guided.var(ddof=1)) / len(plain))
     assert abs(plain.mean()) > 8 * se and abs(guided.mean() - plain.mean()) < 4 * se
     assert plain.std(ddof=1) > 1.5 * guided.std(ddof=1), (plain.std(), guided.std())
+
+
+def test_light_points_resampled_per_edge_sample_stay_unbiased():
+    """RIS over 4 light points per edge sample (R21, target |adjoint · F|) against one point by
+    area, 32², 4 edge samples per pixel, 24 guided calls each: the means agree within 4 s.e.;
+    0 candidates is refused."""
+    import math
+
+    from torchir.integrators import _shadow_edges
+
+    res = 32
+    problem = _blocker_at_10_degrees(res)
+    one = _edge_gradients(*problem, 4 * res * res, 24, guides={})
+    four = _edge_gradients(*problem, 4 * res * res, 24, guides={}, candidates=4)
+    se = math.sqrt((one.var(ddof=1) + four.var(ddof=1)) / len(one))
+    assert abs(one.mean()) > 8 * se and abs(four.mean() - one.mean()) < 4 * se, (one.mean(), four.mean(), se)
+    scene, _, adjoint, blocker = problem
+    with pytest.raises(ValueError, match="candidates"):
+        _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, 16, 0, None, candidates=0)

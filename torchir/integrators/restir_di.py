@@ -232,6 +232,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     same_point_visibility = True  # a lane's own chain reuses its sample's visibility (see _combine; False: traced, for tests)
     shadow_edge_sampling = True  # shadow edges sampled on the moving meshes (see _boundary_backward; False: direct_projective's)
     edge_guiding = True  # (edge, light) pairs drawn by what earlier steps found (_shadow_edges; False: by length)
+    edge_light_candidates = 1  # light points per shadow-edge sample, one kept by RIS (R21; see _shadow_edges)
     moving_geometry_m_cap = 4  # the M cap of temporal reuse after the geometry moved (see sample_paths; 0: m_cap)
 
     def __init__(self, props: mi.Properties | None = None, **options: Any) -> None:
@@ -727,7 +728,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if edges:
             w, h = (int(v) for v in scene.sensors()[sensor].film().crop_size())
             guides = self._edge_guides if self.edge_guiding else None
-            _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]), guides)
+            _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]), guides,
+                                               self.edge_light_candidates)
 
     def boundary_integrator(self, secondary: bool = True) -> mi.Integrator:
         """Mitsuba's ``direct_projective`` restricted to its boundary terms (``sppc=0``; with
