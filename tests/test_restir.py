@@ -60,7 +60,8 @@ def _chains(scene, n_chains, steps, drop, params=None, **options):
 def test_ris_m1_equals_light_sampling_lane_for_lane(oxalis):
     """B.1 (one candidate, no reuse) is exactly next-event estimation with Mitsuba's
     ``sample_emitter_direction`` and the same random numbers."""
-    from torchir.integrators.restir_di import _develop, _sample_rays
+    from torchir.integrators._film import develop
+    from torchir.integrators.restir_di import _sample_rays
 
     r = ReSTIRSampler(oxalis, preset="b1")
     img = render(oxalis, {}, spp=1, seed=3, sampler=r).permute(1, 2, 0).numpy()
@@ -77,7 +78,7 @@ def test_ris_m1_equals_light_sampling_lane_for_lane(oxalis):
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, si.is_valid())
     fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), si.is_valid())
     nee = weight * (si.emitter(scene).eval(si) + em_weight * fs)
-    hand = _develop(nee, 1, RES, RES).numpy()
+    hand = develop(nee, 1, RES, RES).numpy()
     assert np.abs(img - hand).max() <= 1e-5 * max(1.0, np.abs(hand).max())
 
 
@@ -823,7 +824,8 @@ def area_scene() -> torchir.Scene:
 
 
 def test_area_light_m1_equals_light_sampling(area_scene):
-    from torchir.integrators.restir_di import _develop, _sample_rays
+    from torchir.integrators._film import develop
+    from torchir.integrators.restir_di import _sample_rays
 
     r = ReSTIRSampler(area_scene, preset="b1")
     img = render(area_scene, {}, spp=1, seed=4, sampler=r).permute(1, 2, 0).numpy()
@@ -837,7 +839,7 @@ def test_area_light_m1_equals_light_sampling(area_scene):
     si = scene.ray_intersect(mi.Ray3f(ray))
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, si.is_valid())
     fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), si.is_valid())
-    hand = _develop(weight * (si.emitter(scene).eval(si) + em_weight * fs), 1, RES, RES).numpy()
+    hand = develop(weight * (si.emitter(scene).eval(si) + em_weight * fs), 1, RES, RES).numpy()
     assert hand.max() > 1.0  # the panel is in view
     assert np.abs(img - hand).max() <= 1e-5 * np.abs(hand).max()
 

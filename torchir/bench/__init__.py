@@ -25,6 +25,7 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "restir_views": "torchir.bench.restir_views",
     "restir_shadow": "torchir.bench.restir_shadow",
     "restir_antithetic": "torchir.bench.restir_antithetic",
+    "restir_silhouette": "torchir.bench.restir_silhouette",
     "combined": "torchir.bench.combined",
     "stepcost": "torchir.bench.stepcost",
     "scaleup": "torchir.bench.scaleup",

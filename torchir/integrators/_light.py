@@ -15,7 +15,8 @@ a black texel or a switched-off light has ``f = 0`` but ``df/dθ > 0``. The inte
 that remainder from the same candidates (``inv_pc`` of :func:`sample_candidate`, and
 :func:`eval_target` with ``positive_only=False``); see ``restir_di.ReSTIRDirectIntegrator``.
 
-The Dr.Jit struct types are built lazily (they need the Mitsuba variant).
+The Dr.Jit struct types are built lazily (they need the Mitsuba variant); :func:`fresh_reservoirs`
+makes a pass's reservoirs from its RIS.
 """
 from __future__ import annotations
 
@@ -157,3 +158,20 @@ def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.S
     f = dr.select(active, f, 0.0)
     out = (y, f, dr.select(active, mi.luminance(f), 0.0), dr.select(active, mi.luminance(nee), 0.0))
     return (*out, dr.select(sampled, inv_pc, 0.0)) if with_inv_pc else out
+
+
+def fresh_reservoirs(ray, pi, si, valid: mi.Bool, y, w_sum: mi.Float, phat: mi.Float, candidates: int,
+                     offset: mi.Point2f | None = None):
+    """The reservoirs of streaming RIS over ``candidates`` at the first hits ``(pi, si)`` of
+    camera rays ``ray``: the chosen sample ``y`` with ``W = w_sum / (M p̂(y))`` (R5), and the
+    shading point stored to be found and rebuilt (``offset``: its position in the pixel)."""
+    m0 = dr.select(valid, mi.Float(candidates), 0.0)
+    r = dr.zeros(Reservoirs(), dr.width(valid))
+    r.y, r.w_sum, r.M = y, w_sum, m0
+    r.W = dr.select(phat > 0, w_sum / (m0 * dr.select(phat > 0, phat, 1.0)), 0.0)  # (R5)
+    r.shape, r.prim, r.prim_uv = pi.shape_index, pi.prim_index, pi.prim_uv
+    r.o, r.d, r.t = ray.o, ray.d, pi.t
+    if offset is not None:
+        r.offset = offset
+    r.p, r.n, r.valid = si.p, mi.Vector3f(si.sh_frame.n), valid
+    return r

@@ -33,8 +33,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ._light import FORWARD_FLAGS, eval_target
-from .restir_di import _develop, fresh_reservoirs
+from ._film import develop
+from ._light import FORWARD_FLAGS, eval_target, fresh_reservoirs
 
 __all__ = ["FORMS", "derivative_image", "screen_projection"]
 
@@ -190,7 +190,7 @@ def _derivative_image(integrator, scene, theta, sensor, sensor_obj, seed, spp, f
             total += -flux * dr.dot(project(si.p), normal) / _EDGE_PDF  # d/dθ: -L (v . n) / pdf
     total /= members
     dr.forward_from(theta)
-    return _develop(dr.grad(total), spp, h, w)
+    return develop(dr.grad(total), spp, h, w)
 
 
 @dataclass
@@ -220,10 +220,14 @@ class _Member:
             return si.emitter(self.scene).eval(si, self.r.valid) + f * self.r.W
 
 
-def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, prev, radius, shared) -> list[_Member]:
+def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, prev, radius, shared,
+           seen_from_above=(), candidates: int | None = None, unroll: bool | None = None) -> list[_Member]:
     """Resample a light sample at each member's shading point (screen positions in pixels).
     The members draw the same random numbers; with ``prev`` each combines with its own nearest
-    reservoirs, or (``shared``) all with those found for one member drawn at random (Eq. 29)."""
+    reservoirs, or (``shared``) all with those found for one member drawn at random (Eq. 29).
+    Members whose index is in ``seen_from_above`` are shaded as if seen along the shading normal
+    (``si.wi = (0, 0, 1)``; for a silhouette's inside, see :mod:`._silhouettes`). ``candidates``:
+    RIS candidates per point (default the integrator's); ``unroll``: see ``_streaming_ris``."""
     w, h = (int(v) for v in sensor_obj.film().crop_size())
     n = dr.width(screen_points[0].x)
     members = []
@@ -232,11 +236,14 @@ def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, 
             ray, _ = sensor_obj.sample_ray(0.0, 0.0, s * dr.rcp(mi.ScalarVector2f(w, h)), mi.Point2f(0.5))
             hit = scene.ray_intersect_preliminary(ray, coherent=True)
             si = hit.compute_surface_interaction(ray, FORWARD_FLAGS)
+            if len(members) in seen_from_above:
+                si.wi = mi.Vector3f(0.0, 0.0, 1.0)
             valid = si.is_valid()
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(dr.opaque(mi.UInt32, light_seed), n)  # the same numbers for every member
-            y, f, phat, w_sum, _ = integrator._streaming_ris(scene, si, sampler, valid, n, False, integrator.candidates)
-            r = fresh_reservoirs(ray, hit, si, valid, y, w_sum, phat, integrator.candidates)
+            m_count = integrator.candidates if candidates is None else candidates
+            y, f, phat, w_sum, _ = integrator._streaming_ris(scene, si, sampler, valid, n, False, m_count, unroll)
+            r = fresh_reservoirs(ray, hit, si, valid, y, w_sum, phat, m_count)
             members.append(_Member(scene, ray, hit, si, sampler, r, f, phat))
         if prev is not None and integrator.reuse:
             k = integrator.neighbors

@@ -126,8 +126,10 @@ from mitsuba.python.ad.integrators.common import RBIntegrator
 
 from .. import backend
 from ..scene import is_geometry_key
-from . import _knn, _shadow_edges
-from ._light import FORWARD_FLAGS, LightSample, Reservoirs, eval_target, rebuild_interaction, sample_candidate
+from . import _knn, _shadow_edges, _silhouettes
+from ._film import develop
+from ._light import (FORWARD_FLAGS, LightSample, Reservoirs, eval_target, fresh_reservoirs, rebuild_interaction,
+                     sample_candidate)
 from ._scene_watch import EmitterWatch, GeometryWatch, as_tuples
 
 __all__ = ["ReSTIRDirectIntegrator", "check_scene", "StepCache"]
@@ -233,6 +235,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     shadow_edge_sampling = True  # shadow edges sampled on the moving meshes (see _boundary_backward; False: direct_projective's)
     edge_guiding = True  # (edge, light) pairs drawn by what earlier steps found (_shadow_edges; False: by length)
     edge_light_candidates = 1  # light points per shadow-edge sample, one kept by RIS (R21; see _shadow_edges)
+    silhouette_sampling = False  # primary silhouettes sampled on the moving meshes' edges (_silhouettes; False: direct_projective's)
+    silhouette_candidates = 16  # RIS light candidates on either side of a silhouette sample (bench restir_silhouette)
     moving_geometry_m_cap = 4  # the M cap of temporal reuse after the geometry moved (see sample_paths; 0: m_cap)
 
     def __init__(self, props: mi.Properties | None = None, **options: Any) -> None:
@@ -280,7 +284,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self._emitter_watch = EmitterWatch()
         self.freeze = bool(cfg["freeze"])
         self._frozen_pass = None
-        self._boundary_integrators: dict[bool, mi.Integrator] = {}  # direct_projective, by `secondary`
+        self._boundary_integrators: dict[tuple[bool, bool], mi.Integrator] = {}  # direct_projective, by (secondary, primary)
         self._edge_guides: dict[str, np.ndarray] = {}  # per mesh, see _shadow_edges.shadow_edge_backward
         self._geometry_watch = GeometryWatch()
         self._geometry_seen: tuple | None = None  # geometry at the last step
@@ -562,18 +566,20 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             dr.eval(r, f_sel, n_ok)
             t1 = tic("combine", t2)
         contrib = ray_weight * (le_vis + f_sel * r.W)  # (R16)
-        image = _develop(contrib, spp, h, w)
+        image = develop(contrib, spp, h, w)
         dr.eval(image, zero if zero is not None else ())
         tic("develop", t1)
         return ray_weight, image, r, n_ok, zero
 
-    def _streaming_ris(self, scene, si, sampler, valid, n: int, zero_remainder: bool, candidates: int):
+    def _streaming_ris(self, scene, si, sampler, valid, n: int, zero_remainder: bool, candidates: int,
+                       unroll: bool | None = None):
         """``(y, f, p̂, w_sum, (y0, w0))`` of streaming RIS over ``candidates`` light candidates
         (Alg. A1), with ``y0`` the first candidate whose ``p̂`` is 0 and ``w0 = n0 / (M p_c(y0))``
         (0 where none, or where ``y0`` is occluded): the gradient's ``p̂ = 0`` remainder (None
         without ``zero_remainder``).
-        Up to ``UNROLLED_CANDIDATES`` the loop is unrolled into the kernel; beyond, a symbolic
-        loop keeps the kernel small (1024 unrolled candidates took minutes to compile)."""
+        Up to ``UNROLLED_CANDIDATES`` the loop is unrolled into the kernel (``unroll`` forces
+        either way); beyond, a symbolic loop keeps the kernel small (1024 unrolled candidates
+        took minutes to compile)."""
         y, y0 = dr.zeros(LightSample(), n), dr.zeros(LightSample(), n)
         f_sel, phat_sel = dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n)
         w_sum, inv_pc0, n0 = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
@@ -589,7 +595,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                     dr.select(first, y_m, y0), dr.select(first, inv_pc, inv_pc0), dr.select(zero, n0 + 1.0, n0))
 
         state = (y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0)
-        if candidates <= UNROLLED_CANDIDATES:
+        if (candidates <= UNROLLED_CANDIDATES) if unroll is None else unroll:
             for _ in range(candidates):
                 state = candidate(*state)
         else:
@@ -720,27 +726,43 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         """The visibility-boundary terms. Shadow edges of the differentiated meshes, where
         :func:`_shadow_edges.supported` (area lights, a perspective sensor), come from edge
         samples on those meshes alone (``spp`` per pixel, guided by the earlier steps' samples
-        unless ``edge_guiding`` is off); the rest from ``direct_projective``. The guides are a
-        variance heuristic only: not saved in checkpoints, rebuilt after a resume."""
+        unless ``edge_guiding`` is off); with ``silhouette_sampling``, where
+        :func:`_silhouettes.supported` (also a box filter), the primary silhouettes likewise
+        (``silhouette_candidates`` RIS light candidates either side, no reuse); the rest from
+        ``direct_projective``. The guides are a variance heuristic only: not saved in
+        checkpoints, rebuilt after a resume."""
         meshes = _differentiated_meshes(scene, params)
-        edges = self.shadow_edge_sampling and _shadow_edges.supported(scene, scene.sensors()[sensor], meshes)
-        self.boundary_integrator(secondary=not edges).render_backward(scene, params, grad_in, sensor, seed, spp)
+        sensor_obj = scene.sensors()[sensor]
+        edges = self.shadow_edge_sampling and _shadow_edges.supported(scene, sensor_obj, meshes)
+        silhouettes = self.silhouette_sampling and _silhouettes.supported(scene, sensor_obj, meshes)
+        if not (edges and silhouettes):
+            self.boundary_integrator(secondary=not edges, primary=not silhouettes).render_backward(
+                scene, params, grad_in, sensor, seed, spp)
+        if silhouettes:
+            w, h = (int(v) for v in sensor_obj.film().crop_size())
+            _silhouettes.silhouette_backward(self, scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 11)[0]),
+                                             candidates=self.silhouette_candidates)
         if edges:
             w, h = (int(v) for v in scene.sensors()[sensor].film().crop_size())
             guides = self._edge_guides if self.edge_guiding else None
             _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]), guides,
                                                self.edge_light_candidates)
 
-    def boundary_integrator(self, secondary: bool = True) -> mi.Integrator:
+    def boundary_integrator(self, secondary: bool = True, primary: bool = True) -> mi.Integrator:
         """Mitsuba's ``direct_projective`` restricted to its boundary terms (``sppc=0``; with
-        ``secondary=False`` the primary ones alone, ``sppi=0``), without guiding: on
+        ``secondary=False`` without the secondary ones, ``sppi=0``; with ``primary=False``
+        without the primary ones, ``sppp=0``), without guiding: on
         ``occluded_lights`` (64², the blocker's shadow) the default octree guiding took 5.7 s a
         step against 0.06 s, for the same error x time (relative variance x seconds 0.48
         against 0.42) and the same mean."""
-        if secondary not in self._boundary_integrators:
+        if (secondary, primary) not in self._boundary_integrators:
             options = {"type": "direct_projective", "sppc": 0, "guiding": "none"}
-            self._boundary_integrators[secondary] = mi.load_dict(options if secondary else {**options, "sppi": 0})
-        return self._boundary_integrators[secondary]
+            if not secondary:
+                options["sppi"] = 0
+            if not primary:
+                options["sppp"] = 0
+            self._boundary_integrators[secondary, primary] = mi.load_dict(options)
+        return self._boundary_integrators[secondary, primary]
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
@@ -882,30 +904,6 @@ def _footprints(scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int, w: int,
     if len(vals) == 0:
         return 1e-2, 5e-3
     return float(2.0 * np.median(vals)), float(np.percentile(vals, 5))
-
-
-def fresh_reservoirs(ray, pi, si, valid: mi.Bool, y, w_sum: mi.Float, phat: mi.Float, candidates: int,
-                     offset: mi.Point2f | None = None):
-    """The reservoirs of streaming RIS over ``candidates`` at the first hits ``(pi, si)`` of
-    camera rays ``ray``: the chosen sample ``y`` with ``W = w_sum / (M p̂(y))`` (R5), and the
-    shading point stored to be found and rebuilt (``offset``: its position in the pixel)."""
-    m0 = dr.select(valid, mi.Float(candidates), 0.0)
-    r = dr.zeros(Reservoirs(), dr.width(valid))
-    r.y, r.w_sum, r.M = y, w_sum, m0
-    r.W = dr.select(phat > 0, w_sum / (m0 * dr.select(phat > 0, phat, 1.0)), 0.0)  # (R5)
-    r.shape, r.prim, r.prim_uv = pi.shape_index, pi.prim_index, pi.prim_uv
-    r.o, r.d, r.t = ray.o, ray.d, pi.t
-    if offset is not None:
-        r.offset = offset
-    r.p, r.n, r.valid = si.p, mi.Vector3f(si.sh_frame.n), valid
-    return r
-
-
-def _develop(contrib: mi.Color3f, spp: int, h: int, w: int) -> mi.TensorXf:
-    """Box-filtered (H, W, 3) image: the mean of each pixel's ``spp`` consecutive lanes
-    (a block sum, so the result is deterministic)."""
-    chans = [dr.block_sum(c, spp) / spp if spp > 1 else mi.Float(c) for c in (contrib.x, contrib.y, contrib.z)]
-    return mi.TensorXf(dr.ravel(mi.Color3f(*chans)), shape=(h, w, 3))
 
 
 def _reservoir_stats(r, stats: PassStats) -> dict[str, float]:
