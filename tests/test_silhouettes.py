@@ -204,3 +204,35 @@ def test_silhouette_arguments_and_support():
     ortho = mi.load_dict({"type": "scene", "sensor": {"type": "orthographic", "film": {"type": "hdrfilm", "width": 8, "height": 8, "rfilter": {"type": "box"}}},
                           "box": _common.welded_box("box", mi.ScalarTransform4f(), {"type": "diffuse"})})
     assert not supported(ortho, ortho.sensors()[0], [ortho.shapes()[0]])
+
+
+def test_shape_gradient_through_mitsubas_render_op(pig_problem):
+    """``mi.render(..., integrator=restir_di)`` then ``dr.backward``: with a mesh's vertices
+    moving, the integrator's backward takes the attached shading points and the boundary terms
+    (as through torchir's render), and the displacement's derivative matches
+    ``direct_projective``'s within 4 s.e. (without them it missed the silhouette and shadow terms)."""
+    from torchir.integrators import register
+
+    register()
+    scene, pose, _ = pig_problem
+    adjoint_np, _ = _adjoint(RES, 1.0)
+    up = np.tile(np.array([0.0, 0.0, 1.0]), dr.width(pose.v0) // 3)
+
+    def run(integrator) -> np.ndarray:
+        out = []
+        for i in range(10):
+            vertices = mi.Float(pose.v0)
+            dr.enable_grad(vertices)
+            pose.params[pose.key] = vertices
+            pose.params.update()
+            image = mi.render(scene, pose.params, integrator=integrator, spp=16, seed=800 + i)
+            dr.backward(dr.sum(mi.TensorXf(adjoint_np) * image, axis=None))
+            out.append(float(np.dot(np.asarray(dr.grad(vertices)), up)))
+        pose(mi.Float(0.0))
+        return np.array(out)
+
+    ours = run(mi.load_dict({"type": "restir_di", "candidates": 4, "temporal": False, "spatial": False}))
+    theirs = run(mi.load_dict({"type": "direct_projective", "guiding": "none"}))
+    se = math.sqrt((ours.var(ddof=1) + theirs.var(ddof=1)) / 10)
+    assert abs(theirs.mean()) > 8 * se
+    assert abs(ours.mean() - theirs.mean()) < 4 * se, (ours.mean(), theirs.mean(), se)

@@ -348,7 +348,12 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if index not in self.last:
             raise RuntimeError("render_backward() needs a render() of the same sensor first")
         spp = spp or sensor_obj.sampler().sample_count()
-        self.backward(scene, self.last.pop(index), grad_in, int(seed), int(spp))
+        # moving geometry needs the attached shading points and the boundary terms, as through
+        # torchir's render (functions/_sampler_op.py); the moving values must be leaves there:
+        # each pass back-propagates on its own, and the first clears the graph above them
+        geometry = any(is_geometry_key(k) and dr.grad_enabled(v) for k, v in (params or {}).items())
+        self.backward(scene, self.last.pop(index), grad_in, int(seed), int(spp), geometry=geometry,
+                      params=params if geometry else None)
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         raise NotImplementedError("ReSTIR DI implements reverse mode only (render_backward)")
