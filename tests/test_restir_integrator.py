@@ -1150,7 +1150,7 @@ def test_geometry_backward_adds_the_boundary_terms(point, monkeypatch):
     np.testing.assert_allclose(g, g_plain, rtol=1e-5, atol=1e-7)
     assert len(calls) == 1 and calls[0][0] is point and calls[0][1] is the_params and calls[0][2] is grad_in
     assert calls[0][3:] == (0, 9, 1)
-    assert asked == [{"secondary": True}]  # no mesh differentiated: Mitsuba's shadow edges too
+    assert asked == [{"secondary": True, "primary": True}]  # no mesh differentiated: Mitsuba's shadow edges and silhouettes too
 
 
 # ------------------------------------------------------------------------------ persistent offsets
