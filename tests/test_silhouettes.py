@@ -62,6 +62,22 @@ def _gradients(pose: _Translation, backward, calls: int) -> np.ndarray:
     return np.array(out)
 
 
+def _vertex_gradients(pose: _Translation, step, calls: int) -> np.ndarray:
+    """The derivative along ``pose.velocity`` from ``step(i)`` (a render and its backward pass),
+    with the vertices a fresh leaf each call, as torch hands them over."""
+    velocity = np.tile(np.array([pose.velocity.x[0], pose.velocity.y[0], pose.velocity.z[0]]), dr.width(pose.v0) // 3)
+    out = []
+    for i in range(calls):
+        vertices = mi.Float(pose.v0)
+        dr.enable_grad(vertices)
+        pose.params[pose.key] = vertices
+        pose.params.update()
+        step(i)
+        out.append(float(np.dot(np.asarray(dr.grad(vertices)), velocity)))
+    pose(mi.Float(0.0))
+    return np.array(out)
+
+
 def _adjoint(res: int, offset: float = 0.0) -> tuple[np.ndarray, mi.TensorXf]:
     a = np.random.default_rng(0).normal(size=(res, res, 3)).astype(np.float32) + offset
     return a, mi.TensorXf(a)
@@ -140,22 +156,16 @@ def test_silhouette_sampling_through_the_restir_integrator(pig_problem):
     matches the default path (``direct_projective``'s primary term) within 4 s.e."""
     scene, pose, _ = pig_problem
     _, adjoint = _adjoint(RES, 1.0)
-    up = np.tile(np.array([0.0, 0.0, 1.0]), dr.width(pose.v0) // 3)
 
     def run(sampling: bool) -> np.ndarray:
         integrator = ReSTIRDirectIntegrator(candidates=4, temporal=False, spatial=False)
         integrator.silhouette_sampling = sampling
-        out = []
-        for i in range(10):
-            vertices = mi.Float(pose.v0)
-            dr.enable_grad(vertices)
-            pose.params[pose.key] = vertices
-            pose.params.update()
+
+        def step(i):
             _, cache = integrator.step(scene, 0, 600 + i, 4)
             integrator.backward(scene, cache, adjoint, 700 + i, 4, geometry=True, params=pose.params)
-            out.append(float(np.dot(np.asarray(dr.grad(vertices)), up)))
-        pose(mi.Float(0.0))
-        return np.array(out)
+
+        return _vertex_gradients(pose, step, 10)
 
     ours, default = run(True), run(False)
     se = math.sqrt((ours.var(ddof=1) + default.var(ddof=1)) / 10)
@@ -216,20 +226,13 @@ def test_shape_gradient_through_mitsubas_render_op(pig_problem):
     register()
     scene, pose, _ = pig_problem
     adjoint_np, _ = _adjoint(RES, 1.0)
-    up = np.tile(np.array([0.0, 0.0, 1.0]), dr.width(pose.v0) // 3)
 
     def run(integrator) -> np.ndarray:
-        out = []
-        for i in range(10):
-            vertices = mi.Float(pose.v0)
-            dr.enable_grad(vertices)
-            pose.params[pose.key] = vertices
-            pose.params.update()
+        def step(i):
             image = mi.render(scene, pose.params, integrator=integrator, spp=16, seed=800 + i)
             dr.backward(dr.sum(mi.TensorXf(adjoint_np) * image, axis=None))
-            out.append(float(np.dot(np.asarray(dr.grad(vertices)), up)))
-        pose(mi.Float(0.0))
-        return np.array(out)
+
+        return _vertex_gradients(pose, step, 10)
 
     ours = run(mi.load_dict({"type": "restir_di", "candidates": 4, "temporal": False, "spatial": False}))
     theirs = run(mi.load_dict({"type": "direct_projective", "guiding": "none"}))
