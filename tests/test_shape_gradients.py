@@ -76,7 +76,7 @@ def test_unwelded_mesh_under_shape_gradients_warns_once():
 # ---------------------------------------------- shadow edges sampled on the moving mesh (ReSTIR)
 def test_shadow_edge_table_of_a_welded_box():
     """12 triangles of a welded box: 12 box edges + 6 face diagonals, every one with two faces."""
-    from torchir.integrators._shadow_edges import mesh_edges
+    from torchir.integrators._mesh_edges import mesh_edges
 
     box = torchir.Scene.builtin("occluded_lights", resolution=8).mi_scene
     mesh = next(s for s in box.shapes() if s.id() == "blocker")

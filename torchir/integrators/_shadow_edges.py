@@ -36,63 +36,25 @@ blocker's rotation) this gave the same derivative as finite differences and Mits
 """
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["supported", "shadow_edge_backward", "mesh_edges"]
+from ._mesh_edges import EdgeTable, edges_of, endpoints, faces_side, seen_whole
+
+__all__ = ["supported", "shadow_edge_backward"]
 
 _EPS = 1e-4  # offset of the traced rays off the edge, relative to the scene's extent
-
-
-@dataclass(frozen=True)
-class EdgeTable:
-    """A mesh's edges: end vertices ``a``, ``b`` and the third vertex of each adjacent face
-    (``c1``, ``c2``; ``c2 == c1`` for an edge with one face)."""
-
-    a: np.ndarray
-    b: np.ndarray
-    c1: np.ndarray
-    c2: np.ndarray
-
-
-def mesh_edges(faces: np.ndarray) -> EdgeTable:
-    """Unique edges of a triangle list ``faces`` (F, 3), each with its adjacent faces' third
-    vertices (the first two faces of a non-manifold edge)."""
-    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    third: dict[tuple[int, int], list[int]] = {}
-    for a, b, c in faces.tolist():
-        for u, v, w in ((a, b, c), (b, c, a), (c, a, b)):
-            third.setdefault((min(u, v), max(u, v)), []).append(w)
-    keys = list(third)
-    a = np.array([k[0] for k in keys], np.uint32)
-    b = np.array([k[1] for k in keys], np.uint32)
-    c1 = np.array([third[k][0] for k in keys], np.uint32)
-    c2 = np.array([third[k][1] if len(third[k]) > 1 else third[k][0] for k in keys], np.uint32)
-    return EdgeTable(a, b, c1, c2)
-
-
-@functools.lru_cache(maxsize=64)
-def _edges_of(faces_bytes: bytes) -> EdgeTable:
-    return mesh_edges(np.frombuffer(faces_bytes, np.uint32))
 
 
 def supported(scene: mi.Scene, sensor: mi.Sensor, meshes: list) -> bool:
     """Whether this estimator covers the scene's shadow edges for ``meshes``: every emitter an
     area light on a shape that is not among ``meshes``, ``meshes`` triangle meshes, and a
     perspective sensor without a crop window."""
-    if not meshes or not all(isinstance(m, mi.Mesh) and not m.is_emitter() for m in meshes):
-        return False
     emitters = scene.emitters()
-    if not emitters or any(e.get_shape() is None for e in emitters):
-        return False
-    film = sensor.film()
-    if tuple(film.crop_size()) != tuple(film.size()) or tuple(film.crop_offset()) != (0, 0):
-        return False
-    return str(sensor).startswith("PerspectiveCamera")
+    return seen_whole(sensor, meshes) and bool(emitters) and all(e.get_shape() is not None for e in emitters)
 
 
 GUIDE_MEMORY = 0.1  # weight of a step's estimate in a guide's running mean
@@ -118,7 +80,7 @@ def shadow_edge_backward(
     if candidates < 1:
         raise ValueError(f"candidates must be >= 1, got {candidates}")
     sensor = scene.sensors()[sensor_index]
-    tables = [_edges_of(np.asarray(m.faces_buffer(), np.uint32).tobytes()) for m in meshes]
+    tables = [edges_of(m) for m in meshes]
     with dr.suspend_grad():
         lengths = [np.asarray(_edge_lengths(m, t), np.float64) for m, t in zip(meshes, tables)]
     total = sum(float(length.sum()) for length in lengths)
@@ -159,20 +121,14 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.n
     n_lights = len(scene.emitters())
     with dr.suspend_grad():
         # the (edge, light) pair by _pair_pmf, xB uniform along the edge
-        ea, eb = mi.UInt32(table.a), mi.UInt32(table.b)
-        pa, pb = mesh.vertex_position(ea), mesh.vertex_position(eb)
         light_pmf = np.array([float(scene.pdf_emitter(j)[0]) for j in range(n_lights)])
         pmf = _pair_pmf(lengths, light_pmf, guide)
         pair_pick = mi.DiscreteDistribution(mi.Float(pmf.astype(np.float32)))
         pair, along = pair_pick.sample_reuse(sampler.next_1d())
         edge, emitter_index = pair // n_lights, pair % n_lights
         inv_pdf_edge = dr.gather(mi.Float, mi.Float(lengths.astype(np.float32)), edge) * pair_pick.sum() / pair_pick.eval_pmf(pair)
-        a = dr.gather(mi.Point3f, pa, edge)
-        b = dr.gather(mi.Point3f, pb, edge)
-        ends = _EdgePoint(
-            xb=dr.lerp(a, b, along), tangent=dr.normalize(b - a),
-            third1=mesh.vertex_position(dr.gather(mi.UInt32, mi.UInt32(table.c1), edge)),
-            third2=mesh.vertex_position(dr.gather(mi.UInt32, mi.UInt32(table.c2), edge)))
+        a, b, c1, c2 = endpoints(mesh, table, edge)
+        ends = _EdgePoint(xb=dr.lerp(a, b, along), tangent=dr.normalize(b - a), third1=c1, third2=c2)
         emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), emitter_index)
 
         # x0 on the pair's light: RIS over `candidates` points by area, target |adjoint * F|
@@ -196,8 +152,8 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.n
     # attached: xB rides on its edge, x1 on the camera ray (ray-following, as the interior
     # term), x0 is where the line x1 -> xB meets the light's plane
     with dr.resume_grad():
-        xb_t = dr.lerp(mesh.vertex_position(dr.gather(mi.UInt32, ea, edge)),
-                       mesh.vertex_position(dr.gather(mi.UInt32, eb, edge)), along)
+        a_t, b_t, _, _ = endpoints(mesh, table, edge)
+        xb_t = dr.lerp(a_t, b_t, along)
         x0, x1, camera, n_light = chosen["x0"], chosen["x1"], chosen["camera"], chosen["n_light"]
         cam_dir = dr.normalize(x1 - camera)
         si_cam = scene.ray_intersect(mi.Ray3f(camera, cam_dir), mi.RayFlags.All, True, active)
@@ -239,8 +195,7 @@ def _light_candidate(scene, sensor, grad_in, emitter, edge: _EdgePoint, sample: 
     plane = dr.cross(edge.tangent, omega)
     sin_alpha = dr.norm(plane)
     n_plane = plane / dr.select(sin_alpha > 0, sin_alpha, 1.0)
-    side = dr.sign(dr.dot(n_plane, edge.third1 - xb))  # the mesh lies on this side of the plane
-    silhouette = side == dr.sign(dr.dot(n_plane, edge.third2 - xb))
+    side, silhouette = faces_side(n_plane, xb, edge.third1, edge.third2)  # the mesh lies on `side` of the plane
     active = silhouette & (sin_alpha > 1e-6) & (dr.dot(n_light, omega) > 0) & (ps.pdf > 0)
 
     # xB -> x0 must reach the light unoccluded, xB -> x1 finds the receiver

@@ -743,12 +743,11 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if not (edges and silhouettes):
             self.boundary_integrator(secondary=not edges, primary=not silhouettes).render_backward(
                 scene, params, grad_in, sensor, seed, spp)
+        w, h = (int(v) for v in sensor_obj.film().crop_size())
         if silhouettes:
-            w, h = (int(v) for v in sensor_obj.film().crop_size())
             _silhouettes.silhouette_backward(self, scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 11)[0]),
                                              candidates=self.silhouette_candidates)
         if edges:
-            w, h = (int(v) for v in scene.sensors()[sensor].film().crop_size())
             guides = self._edge_guides if self.edge_guiding else None
             _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]), guides,
                                                self.edge_light_candidates)
