@@ -36,6 +36,18 @@ def test_only_the_projective_variant_leaves_edge_sampling_off():
     assert flags == {"ReSTIR": True, "forward-only": True, "B.2": True, "ReSTIR, projective edges": False}
 
 
+def test_blocker_and_edge_candidates_reach_the_scene_and_every_sampler():
+    a = restir_shadow.parse_args(["--blocker", "crown", "--edge-candidates", "4"])
+    assert (a.blocker, a.edge_candidates) == ("crown", 4)
+    scene, key = restir_shadow.shadow_problem(8, blocker=a.blocker)
+    assert key in scene.parameter_names() and scene.get("blocker.vertex_positions").numel() > 8 * 3 * 10
+    counts = {m: restir_shadow.sampler_for(m, scene, 1, a.edge_candidates).integrator.edge_candidates
+              for m in restir_shadow.METHODS if m != "direct_projective"}
+    assert set(counts.values()) == {4}
+    with pytest.raises(SystemExit):
+        restir_shadow.parse_args(["--blocker", "tree"])
+
+
 def test_spread_table_ranks_by_variance_times_time():
     spread = {"ReSTIR": {"mean": 2.0, "sd": 0.2, "seconds_per_step": 0.1, "var_x_time": 0.004},
               "B.2": {"mean": 2.0, "sd": 0.4, "seconds_per_step": 0.05, "var_x_time": 0.008}}

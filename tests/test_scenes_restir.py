@@ -111,6 +111,33 @@ def test_occluded_lights_blocker_is_a_mesh_whose_shadow_is_seen():
     assert float(lit.mean()) > 1.05 * float(a.mean())  # the shadow darkens the view
 
 
+def test_occluded_lights_crown_blocker_is_closed_and_mostly_off_the_shadow_outline():
+    """The "Tree"-like blocker: a closed welded mesh of 6 r (r - 1) edges, of which only a few
+    percent lie on its outline seen from the small light, casting a shadow like the box's."""
+    from torchir.integrators._mesh_edges import edges_of
+
+    rings = 12
+    scene = torchir.Scene.builtin("occluded_lights", resolution=RES, blocker="crown", rings=rings)
+    mesh = next(s for s in scene.mi_scene.shapes() if s.id() == "blocker")
+    table = edges_of(mesh)
+    assert len(table.a) == 6 * rings * (rings - 1)
+    assert bool(np.all(table.c1 != table.c2))  # every edge between two faces: a closed surface
+    v = scene.get("blocker.vertex_positions").reshape(-1, 3).double().numpy()
+    a, b, c1, c2 = (v[i.astype(np.int64)] for i in (table.a, table.b, table.c1, table.c2))
+    normal = np.cross(b - a, np.array([-2.6, 0.2, 2.3]) - a)  # the plane through the edge and the small light
+    side1, side2 = np.einsum("ij,ij->i", c1 - a, normal), np.einsum("ij,ij->i", c2 - a, normal)
+    outline = int(np.sum(side1 * side2 > 0))  # both faces on one side: the edge is on the outline
+    assert 0 < outline < 0.15 * len(table.a), outline
+    box = torchir.Scene.builtin("occluded_lights", resolution=RES)
+    a, b = render(box, {}, spp=64, seed=0), render(scene, {}, spp=64, seed=0)
+    unblocked = render(box, {"blocker.vertex_positions": box.get("blocker.vertex_positions") + 50.0}, spp=64, seed=0)
+    assert float(b.mean()) < 0.97 * float(unblocked.mean())  # the crown's shadow darkens the view
+    assert abs(float(a.mean()) - float(b.mean())) < 0.1 * float(a.mean())  # a shadow of about the box's size
+    for bad in ({"blocker": "tree"}, {"blocker": "crown", "rings": 2}):
+        with pytest.raises(ValueError, match=r"^(blocker must be|rings must be)"):
+            torchir.scenes.get("occluded_lights").build(resolution=RES, **bad)
+
+
 def test_oxalis_lite_views_on_an_arc_all_see_the_canvas():
     scene = torchir.Scene.builtin("oxalis_lite", resolution=16, views=3)
     assert scene.sensor_count == 3 and torchir.Scene.builtin("oxalis_lite", resolution=16).sensor_count == 1

@@ -58,6 +58,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--tolerance", type=float, default=5.0, help="converged: final |angle| below this (degrees)")
     p.add_argument("--spread-steps", type=int, default=None, help="gradients per method for the spread table (default 24, quick 8)")
     p.add_argument("--spread-angle", type=float, default=10.0, help="angle (degrees) where the gradient spread is measured")
+    p.add_argument("--blocker", choices=("box", "crown"), default="box",
+                   help="occluded_lights' blocker: a box (12 edges) or a lumpy crown (3312 edges, most never on a shadow's outline)")
+    p.add_argument("--edge-candidates", type=int, default=1,
+                   help="whole shadow-edge samples per kept sample, RIS (the integrator's edge_candidates), for every torchir method")
     p.add_argument("--quick", action="store_true")
     p.add_argument("--out", default="results/bench_restir_shadow")
     a = p.parse_args(argv)
@@ -68,19 +72,20 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return a
 
 
-def shadow_problem(resolution: int, integrator: dict[str, Any] | None = None) -> tuple[torchir.Scene, str]:
+def shadow_problem(resolution: int, integrator: dict[str, Any] | None = None, blocker: str = "box") -> tuple[torchir.Scene, str]:
     """``occluded_lights`` with the blocker's rotation about z as a derived parameter."""
-    scene = torchir.Scene.builtin("occluded_lights", resolution=resolution, override_integrator=integrator)
+    scene = torchir.Scene.builtin("occluded_lights", resolution=resolution, override_integrator=integrator, blocker=blocker)
     return scene, rigid_transform(scene, "blocker", rotation_axis=[0, 0, 1], pivot=list(BLOCKER_CENTER))[1]
 
 
-def sampler_for(method: str, scene: torchir.Scene, burn_in: int) -> ReSTIRSampler | None:
+def sampler_for(method: str, scene: torchir.Scene, burn_in: int, edge_candidates: int = 1) -> ReSTIRSampler | None:
     if method == "direct_projective":
         return None
     preset = {"ReSTIR": "restir", "forward-only": "forward_only", "B.2": "b2", "ReSTIR, projective edges": "restir"}[method]
     sampler = ReSTIRSampler(scene, preset=preset, burn_in=burn_in)
     if method == "ReSTIR, projective edges":
         sampler.integrator.shadow_edge_sampling = False
+    sampler.integrator.edge_candidates = edge_candidates
     return sampler
 
 
@@ -112,7 +117,7 @@ def gradient_spread(problems: dict[str, tuple], target, a) -> dict[str, dict[str
     out = {}
     for method in METHODS:
         scene, key = problems[method]
-        sampler = sampler_for(method, scene, a.burn_in)
+        sampler = sampler_for(method, scene, a.burn_in, a.edge_candidates)
         extra = {} if sampler is None else {"sampler": sampler}
         grads, seconds = [], []
         for i in range(a.spread_steps + 2):  # two first steps (burn-in, kernels) not counted
@@ -163,13 +168,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     a = parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    scene, key = shadow_problem(a.resolution)
-    plain, plain_key = shadow_problem(a.resolution, {"type": "direct_projective", "guiding": "none"})
+    scene, key = shadow_problem(a.resolution, blocker=a.blocker)
+    plain, plain_key = shadow_problem(a.resolution, {"type": "direct_projective", "guiding": "none"}, blocker=a.blocker)
     target = render(plain, {plain_key: torch.tensor([0.0])}, spp=a.target_spp, seed=7).detach()
     problems = {m: (plain, plain_key) if m == "direct_projective" else (scene, key) for m in METHODS}
     for method in METHODS:  # compile every method's kernels before timing (a short burn-in)
         s, k = problems[method]
-        fit(s, k, target, a.starts[0], sampler_for(method, s, 1), a, 2, None)
+        fit(s, k, target, a.starts[0], sampler_for(method, s, 1, a.edge_candidates), a, 2, None)
     spread = gradient_spread(problems, target, a)
     results: dict[str, list[dict[str, Any]]] = {m: [] for m in METHODS}
     for start in a.starts:
@@ -177,13 +182,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         for method in METHODS:
             s, k = problems[method]
             t0 = time.perf_counter()
-            sampler = sampler_for(method, s, a.burn_in)
+            sampler = sampler_for(method, s, a.burn_in, a.edge_candidates)
             run = fit(s, k, target, start, sampler, a, a.steps if budget is None else 4 * a.steps, budget)
             if budget is None:  # ReSTIR sets the budget, its burn-in (in the first render) included
                 budget = time.perf_counter() - t0
             results[method].append(run)
             print(f"{method} from {start:+.0f}: final {run['final']:.2f} in {run['steps']} steps, {run['seconds']:.1f} s", flush=True)
-    summary = (f"# Pose from a shadow (occluded_lights), {a.resolution}², Adam lr {a.lr}, equal time per start\n\n"
+    summary = (f"# Pose from a shadow (occluded_lights, {a.blocker} blocker, edge candidates {a.edge_candidates}), {a.resolution}², Adam lr {a.lr}, equal time per start\n\n"
                + summarize(results, a.tolerance) + "\n" + summarize_spread(spread, a.spread_angle))
     write_outputs(out, summary, {"args": vars(a), "results": results, "spread": spread}, draw(results), "shadow.png",
                   "wall time (s; ReSTIR's burn-in included)", "blocker rotation (degrees; truth 0)")

@@ -235,6 +235,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     shadow_edge_sampling = True  # shadow edges sampled on the moving meshes (see _boundary_backward; False: direct_projective's)
     edge_guiding = True  # (edge, light) pairs drawn by what earlier steps found (_shadow_edges; False: by length)
     edge_light_candidates = 1  # light points per shadow-edge sample, one kept by RIS (R21; see _shadow_edges)
+    edge_candidates = 1  # whole shadow-edge samples per sample kept, one kept by RIS (see _shadow_edges)
     silhouette_sampling = False  # primary silhouettes sampled on the moving meshes' edges (_silhouettes; False: direct_projective's)
     silhouette_candidates = 16  # RIS light candidates on either side of a silhouette sample (bench restir_silhouette)
     moving_geometry_m_cap = 4  # the M cap of temporal reuse after the geometry moved (see sample_paths; 0: m_cap)
@@ -750,7 +751,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if edges:
             guides = self._edge_guides if self.edge_guiding else None
             _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]), guides,
-                                               self.edge_light_candidates)
+                                               self.edge_light_candidates, self.edge_candidates)
 
     def boundary_integrator(self, secondary: bool = True, primary: bool = True) -> mi.Integrator:
         """Mitsuba's ``direct_projective`` restricted to its boundary terms (``sppc=0``; with

@@ -96,3 +96,23 @@ def triangle_mesh(name: str, vertices: np.ndarray, faces: np.ndarray, bsdf: dict
     if smooth:
         mesh.recompute_vertex_normals()
     return mesh
+
+
+def sphere_grid(rings: int, segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(directions (V, 3), faces (F, 3))``: a closed latitude-longitude unit sphere with shared
+    poles, ``rings`` latitude bands and ``segments`` longitudes (outward-facing triangles)."""
+    theta = np.linspace(0, np.pi, rings + 1)[1:-1]
+    phi = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    d = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
+    d = np.concatenate([[[0, 0, 1]], d, [[0, 0, -1]]])
+    faces = []
+    ring = lambda i, j: 1 + i * segments + j % segments  # noqa: E731
+    last = len(d) - 1
+    for j in range(segments):
+        faces.append((0, ring(0, j), ring(0, j + 1)))
+        faces.append((last, ring(rings - 2, j + 1), ring(rings - 2, j)))
+        for i in range(rings - 2):
+            faces.append((ring(i, j), ring(i + 1, j), ring(i + 1, j + 1)))
+            faces.append((ring(i, j), ring(i + 1, j + 1), ring(i, j + 1)))
+    return d, np.array(faces, dtype=np.uint32)

@@ -6,7 +6,9 @@ straight down at a diffuse floor with a ``texture x texture`` albedo. A small br
 light (``small_light``) low on the left casts the sharp shadow of ``blocker``, a thin box
 mesh (8 shared vertices, so ``blocker.vertex_positions`` exists and the projective boundary
 terms see a closed mesh; rotate it with :func:`torchir.derived.rigid_transform`) hanging outside
-the camera's view, across the floor.
+the camera's view, across the floor. ``blocker="crown"`` makes it a lumpy, finely tessellated
+closed mesh of about the box's size (a tree's crown, as the paper's "Tree": thousands of edges,
+of which only the few on its outline as seen from a light cast a shadow edge).
 A large ceiling panel (``large_light``, 4 x 4) sits above an occluding plate (``shade``) with a
 single ``hole`` x ``hole`` opening: each floor point sees about 2 % of the panel, so almost
 every light sample towards it is occluded, though it gives the floor about half its light.
@@ -20,8 +22,9 @@ from __future__ import annotations
 from typing import Any
 
 import mitsuba as mi
+import numpy as np
 
-from ._common import bitmap, painting_texture, perspective, resolution_hw, welded_box
+from ._common import bitmap, painting_texture, perspective, resolution_hw, sphere_grid, triangle_mesh, welded_box
 
 DESCRIPTION = "blocker shadow on a textured floor, small light + mostly hidden large light; direct illumination (prb, max_depth 2); recover the floor texture (or the blocker's rotation)"
 PARAMETERS = ("floor.bsdf.reflectance.data",)
@@ -35,6 +38,8 @@ def build(
     angle: float = 30.0,
     hole: float = 0.4,
     large: float = 1.0,
+    blocker: str = "box",
+    rings: int = 24,
 ) -> dict[str, Any]:
     """Mitsuba dict of the scene at ``resolution`` (default 128x128).
 
@@ -43,6 +48,8 @@ def build(
         angle: the blocker's rotation about the vertical (z) axis, in degrees.
         hole: side of the square opening in the shade under the large light (0: fully hidden).
         large: radiance scale of the large light (1: about half the floor's light).
+        blocker: ``"box"`` (12 edges) or ``"crown"`` (a lumpy sphere of ``rings`` latitude bands
+            and ``2 * rings`` longitudes: 6 rings (rings - 1) edges, 3312 by default).
     """
     if texture < 1:
         raise ValueError(f"texture must be >= 1, got {texture}")
@@ -50,9 +57,14 @@ def build(
         raise ValueError(f"hole must be in [0, 2], got {hole}")
     if large < 0:
         raise ValueError(f"large must be >= 0, got {large}")
+    if blocker not in ("box", "crown"):
+        raise ValueError(f"blocker must be 'box' or 'crown', got {blocker!r}")
+    if rings < 3:
+        raise ValueError(f"rings must be >= 3, got {rings}")
     h, w = resolution_hw(resolution, 128)
     T = mi.ScalarTransform4f
     dark = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.2}}
+    placement = T().translate(list(BLOCKER_CENTER)).rotate([0, 0, 1], angle).scale([0.38, 0.06, 0.26])
     scene: dict[str, Any] = {
         "type": "scene",
         "integrator": {"type": "prb", "max_depth": 2},
@@ -64,7 +76,7 @@ def build(
             "bsdf": {"type": "diffuse", "reflectance": bitmap(painting_texture(texture))},
         },
         # a welded box (shared vertices): Mitsuba's cube doubled its projective boundary gradient
-        "blocker": welded_box("blocker", T().translate(list(BLOCKER_CENTER)).rotate([0, 0, 1], angle).scale([0.38, 0.06, 0.26]), dark),
+        "blocker": welded_box("blocker", placement, dark) if blocker == "box" else _crown("blocker", placement, dark, rings),
         # small light: 0.16 x 0.16, low on the left, facing the floor's centre
         "small_light": {
             "type": "rectangle",
@@ -92,3 +104,13 @@ def build(
             "bsdf": dark,
         }
     return scene
+
+
+def _crown(name: str, to_world: mi.ScalarTransform4f, bsdf: dict[str, Any], rings: int) -> mi.Mesh:
+    """A closed lumpy sphere (12 fixed smooth bumps) through ``to_world``, flat-shaded."""
+    d, faces = sphere_grid(rings, 2 * rings)
+    bumps = np.random.default_rng(3).normal(size=(12, 3))
+    bumps /= np.linalg.norm(bumps, axis=1, keepdims=True)
+    radius = 1.0 + 0.25 * np.exp((d @ bumps.T - 1.0) / 0.08).sum(1)
+    m = np.array(to_world.matrix, dtype=np.float64)
+    return triangle_mesh(name, (d * radius[:, None]) @ m[:3, :3].T + m[:3, 3], faces, bsdf)

@@ -18,7 +18,7 @@ from typing import Any
 import mitsuba as mi
 import numpy as np
 
-from ._common import perspective, resolution_hw, triangle_mesh
+from ._common import perspective, resolution_hw, sphere_grid, triangle_mesh
 
 DESCRIPTION = "smooth diffuse blob above a floor, one area light, box filter; direct illumination (prb, max_depth 2); recover its vertical position"
 PARAMETERS = ("pig.vertex_positions",)
@@ -29,11 +29,7 @@ CENTER = (0.0, 0.0, 0.75)  # the blob's centre (the pivot of rigid transforms)
 def blob_vertices(rings: int, segments: int) -> tuple[np.ndarray, np.ndarray]:
     """``(vertices (V, 3), faces (F, 3))`` of the blob around the origin: a latitude-longitude
     sphere (poles shared) displaced smoothly into a body, a snout and four legs."""
-    theta = np.linspace(0, np.pi, rings + 1)[1:-1]
-    phi = np.linspace(0, 2 * np.pi, segments, endpoint=False)
-    t, p = np.meshgrid(theta, phi, indexing="ij")
-    d = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
-    d = np.concatenate([[[0, 0, 1]], d, [[0, 0, -1]]])
+    d, faces = sphere_grid(rings, segments)
 
     def bump(center, width):
         c = np.asarray(center, dtype=np.float64)
@@ -44,17 +40,7 @@ def blob_vertices(rings: int, segments: int) -> tuple[np.ndarray, np.ndarray]:
     for sx in (-1, 1):
         for sy in (-1, 1):
             radius += 0.3 * bump([0.55 * sx, 0.45 * sy, -0.7], 0.015)  # legs
-    v = d * radius[:, None] * np.array([0.75, 0.45, 0.42])
-    faces = []
-    ring = lambda i, j: 1 + i * segments + j % segments  # noqa: E731
-    for j in range(segments):
-        faces.append((0, ring(0, j), ring(0, j + 1)))
-        last = len(d) - 1
-        faces.append((last, ring(rings - 2, j + 1), ring(rings - 2, j)))
-        for i in range(rings - 2):
-            faces.append((ring(i, j), ring(i + 1, j), ring(i + 1, j + 1)))
-            faces.append((ring(i, j), ring(i + 1, j + 1), ring(i, j + 1)))
-    return v, np.array(faces, dtype=np.uint32)
+    return d * radius[:, None] * np.array([0.75, 0.45, 0.42]), faces
 
 
 def blob_mesh(name: str, rings: int, segments: int, center, bsdf: dict[str, Any]) -> mi.Mesh:
