@@ -2,7 +2,6 @@
 run end to end (slow: it compiles every method's kernels)."""
 from __future__ import annotations
 
-import argparse
 import json
 
 import pytest
@@ -20,8 +19,9 @@ def test_summary_and_claims_compare_against_shared_reservoirs(tmp_path):
     errors = {name: 1.0 for name in restir_antithetic.METHODS}
     errors.update({"material, ReSTIR": 50.0, "material, ReSTIR, antithetic": 2.0, "material, ReSTIR, antithetic, shared": 1.0})
     res = _results(errors)
-    text = restir_antithetic.summarize(res, argparse.Namespace(light_size=1.0, dome_lights=0))
+    text = restir_antithetic.summarize(res, restir_antithetic.parse_args(["--blind", "0.25"]))
     assert "| material, ReSTIR | 0.100 | 50.0000 | 50.0000 | 50.00 |" in text
+    assert "light size 1.0, 0 dome lights, blind 0.25)" in text
     (tmp_path / "restir_antithetic").mkdir()
     (tmp_path / "restir_antithetic" / "results.json").write_text(json.dumps(res))
     rows = [line.rsplit("|", 3)[1:3] for line in claims.claims_table(tmp_path).splitlines() if line.startswith("| restir_antithetic")]

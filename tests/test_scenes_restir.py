@@ -138,6 +138,22 @@ def test_occluded_lights_crown_blocker_is_closed_and_mostly_off_the_shadow_outli
             torchir.scenes.get("occluded_lights").build(resolution=RES, **bad)
 
 
+def test_pig_blind_stripes_the_light_on_the_blob():
+    """``pig(blind=...)``: slats across the light's beam leave the blob lit in stripes (about
+    the open 30 % of the light on average); bad periods are refused."""
+    from torchir.scenes import pig
+
+    open_scene = torchir.Scene.builtin("pig", resolution=RES)
+    blind = torchir.Scene.builtin("pig", resolution=RES, blind=0.25)
+    assert sum(s.id().startswith("slat_") for s in blind.mi_scene.shapes()) == 11
+    a, b = render(open_scene, {}, spp=256, seed=0), render(blind, {}, spp=256, seed=0)
+    ratio = float(b.mean()) / float(a.mean())
+    assert 0.2 < ratio < 0.6, ratio  # the floor and blob get about the open share of the light
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match=r"^blind must be in \[0, 1\], got "):
+            pig.build(resolution=RES, blind=bad)
+
+
 def test_oxalis_lite_views_on_an_arc_all_see_the_canvas():
     scene = torchir.Scene.builtin("oxalis_lite", resolution=16, views=3)
     assert scene.sensor_count == 3 and torchir.Scene.builtin("oxalis_lite", resolution=16).sensor_count == 1

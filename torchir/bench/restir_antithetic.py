@@ -75,6 +75,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--candidates", type=int, default=4, help="light candidates per shading point")
     p.add_argument("--light-size", type=float, default=1.0, help="side of the pig scene's square light")
     p.add_argument("--dome-lights", type=int, default=0, help="small lights around the blob (pig's dome_lights: hard light selection)")
+    p.add_argument("--blind", type=float, default=0.0, help="slat period of a blind before the light (pig's blind: visibility the hard part)")
     p.add_argument("--warmup", type=int, default=4, help="untimed steps per method (burn-in, kernels)")
     p.add_argument("--ref-spp", type=int, default=None, help="reference samples per pixel and pass (default 16)")
     p.add_argument("--ref-passes", type=int, default=None, help="reference passes (default 8, quick 4)")
@@ -156,7 +157,7 @@ def run(a) -> dict[str, Any]:
     torchir.backend.set_variant()
     from torchir.scenes import pig
 
-    scene = mi.load_dict(pig.build(a.resolution, light_size=a.light_size, dome_lights=a.dome_lights))
+    scene = mi.load_dict(pig.build(a.resolution, light_size=a.light_size, dome_lights=a.dome_lights, blind=a.blind))
     mask = scored_pixels(scene)
     ref, ref_se = reference(scene, a)
     ref_norm = float(np.linalg.norm(ref[mask]))
@@ -190,7 +191,7 @@ def summarize(res: dict[str, Any], a) -> str:
     shared = m["material, ReSTIR, antithetic, shared"]["equal_time_error"]
     lines = [
         f"# Antithetic sampling and ReSTIR: the blob's vertical displacement ({res['resolution']}², "
-        f"{res['scored_pixels']} scored pixels, light size {a.light_size}, {a.dome_lights} dome lights)",
+        f"{res['scored_pixels']} scored pixels, light size {a.light_size}, {a.dome_lights} dome lights, blind {a.blind})",
         "",
         f"One derivative sample per pixel a step. Equal time: errors scaled to {res['budget_seconds']:.2f} s a "
         f"step (the slowest method's) as variance x time; the reference's own error "

@@ -50,7 +50,7 @@ def blob_mesh(name: str, rings: int, segments: int, center, bsdf: dict[str, Any]
 
 
 def build(resolution: int | tuple[int, int] | None = None, rings: int = 24, segments: int = 48, light_size: float = 1.0,
-          dome_lights: int = 0) -> dict[str, Any]:
+          dome_lights: int = 0, blind: float = 0.0) -> dict[str, Any]:
     """Mitsuba dict of the scene at ``resolution`` (default 64x64).
 
     Args:
@@ -59,6 +59,9 @@ def build(resolution: int | tuple[int, int] | None = None, rings: int = 24, segm
         dome_lights: that many more small square lights (side 0.1) on a dome around the blob, of
             random colours and powers spanning 100x, together as powerful as the main light:
             light selection becomes the hard part, with nothing occluding the blob.
+        blind: slat period of a venetian blind a quarter of the way from the light to the blob
+            (slats across the light's beam, 70 % closed; 0: none): each point of the blob sees
+            the light through stripes, so visibility becomes the hard part.
     """
     if dome_lights < 0:
         raise ValueError(f"dome_lights must be >= 0, got {dome_lights}")
@@ -66,6 +69,8 @@ def build(resolution: int | tuple[int, int] | None = None, rings: int = 24, segm
         raise ValueError(f"light_size must be > 0, got {light_size}")
     if rings < 3 or segments < 3:
         raise ValueError(f"rings and segments must be >= 3, got {rings}, {segments}")
+    if not 0.0 <= blind <= 1.0:
+        raise ValueError(f"blind must be in [0, 1], got {blind}")
     h, w = resolution_hw(resolution, 64)
     T = mi.ScalarTransform4f
     pink = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.45, 0.45]}}
@@ -86,6 +91,8 @@ def build(resolution: int | tuple[int, int] | None = None, rings: int = 24, segm
             "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 25.0 / light_size**2}},
         },
     }
+    if blind > 0:
+        scene.update(_blind(blind))
     rng = np.random.default_rng(7)
     powers = np.exp(rng.uniform(0.0, np.log(100.0), dome_lights))
     powers *= 25.0 / powers.sum() if dome_lights else 1.0  # radiance x area: together as the main light
@@ -100,3 +107,19 @@ def build(resolution: int | tuple[int, int] | None = None, rings: int = 24, segm
             "emitter": {"type": "area", "radiance": {"type": "rgb", "value": (powers[i] / 0.01 * colour / colour.mean()).tolist()}},
         }
     return scene
+
+
+def _blind(period: float, closed: float = 0.7, half_width: float = 1.3) -> dict[str, Any]:
+    """Slats (dark rectangles, ``closed`` of each ``period``) across the main light's beam, in
+    the plane a quarter of the way from the light's centre to its target."""
+    T = mi.ScalarTransform4f
+    light, target = np.array([-1.6, -1.0, 3.0]), np.array([0.0, 0.0, 0.6])
+    middle = light + 0.25 * (target - light)
+    frame = T().look_at(origin=middle.tolist(), target=(middle + target - light).tolist(), up=[0, 0, 1])
+    dark = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.1}}
+    count = int(2 * half_width / period) + 1
+    return {f"slat_{i}": {"type": "rectangle", "bsdf": dark,
+                          "to_world": frame @ T().translate([-half_width + (i + 0.5) * period, 0, 0])
+                          @ T().scale([0.5 * period * closed, half_width, 1])}
+            for i in range(count)}
+
