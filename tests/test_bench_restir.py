@@ -257,6 +257,20 @@ def test_sweep_script_parses_option_sets():
         sweep.keywords("candidates=__import__('os')")  # literals only
 
 
+@pytest.mark.slow
+def test_chains_script_tiny_run():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "restir_chains.py"
+    spec = importlib.util.spec_from_file_location("restir_chains", path)
+    chains = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(chains)
+    out = chains.main(["many_lights", "--resolution", "16", "--steps", "3", "--oracle-steps", "2", "--ref-spp", "64"])
+    assert len(out) == 3 + len(chains.CHAINS) and all(math.isfinite(v) and v >= 0 for v in out.values())
+    assert out["RIS 1024"] < out["RIS 256"]  # more candidates, less light noise
+
+
 # ------------------------------------------------------------------------------ restir_views
 def test_views_bench_tiny_run(tmp_path):
     """A tiny run of the multi-view bench writes its outputs, with one error per step and a

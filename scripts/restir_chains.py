@@ -1,0 +1,63 @@
+#!/usr/bin/env python
+"""How close the persistent preset's chains get to the camera-sampling floor, at equal samples.
+
+The fixed gradient problem of ``torchir bench restir`` (the L2 adjoint at the grey texture,
+1 spp a step, the reference's own error removed in quadrature): the floor is extrapolated from
+RIS over 256 and 1024 shadowed candidates (``e² = floor² + L / M``), then ``preset="persistent"``
+runs with longer chains (burn-in passes, chain cap ``m_cap``). Errors are RMS over the steps.
+
+    python scripts/restir_chains.py many_lights            # 128², 256 steps (about 10 min)
+    python scripts/restir_chains.py ajar_painting --steps 64
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import time
+
+import torchir  # before torch: it sets OMP_WAIT_POLICY
+
+CHAINS = ((32, None), (32, 16384), (512, 16384), (2048, 131072))  # (burn_in, m_cap); None: the preset's
+
+
+def main(argv=None) -> dict[str, float]:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", choices=("ajar_painting", "many_lights", "oxalis_lite", "occluded_lights"))
+    p.add_argument("--resolution", type=int, default=128)
+    p.add_argument("--steps", type=int, default=256, help="steps of each persistent run")
+    p.add_argument("--oracle-steps", type=int, default=32, help="steps of each floor oracle")
+    p.add_argument("--ref-spp", type=int, default=16384)
+    a = p.parse_args(argv)
+
+    from torchir.bench import restir
+    from torchir.samplers import ReSTIRSampler
+
+    torchir.backend.set_variant("auto")
+    b = restir.parse_args(["--scenes", a.scene, "--resolution", str(a.resolution), "--ref-spp", str(a.ref_spp)])
+    problem = restir.make_problem(a.scene, b)
+    ref_sq = problem.ref_relative_se**2
+    print(f"{a.scene} {a.resolution}²: reference relative SE {problem.ref_relative_se:.5f} ({problem.ref_seconds:.0f} s)", flush=True)
+
+    def error(sampler, steps: int) -> tuple[float, float]:
+        squares, t0 = [], time.perf_counter()
+        for i in range(steps):
+            squares.append(problem.step(sampler, 1, 1000 + i)[1] ** 2 - ref_sq)
+        return math.sqrt(max(statistics.fmean(squares), 0.0)), time.perf_counter() - t0
+
+    out = {}
+    for m in (256, 1024):
+        out[f"RIS {m}"] = error(ReSTIRSampler(problem.scene, preset="b2", candidates=m), a.oracle_steps)[0]
+    floor = restir.camera_floor(out["RIS 256"], 256, out["RIS 1024"], 1024)
+    out["floor"] = floor
+    print(f"| run | relative error | x floor | seconds |\n|---|---|---|---|\n| floor (extrapolated) | {floor:.5f} | 1 | |", flush=True)
+    for burn_in, m_cap in CHAINS:
+        e, seconds = error(ReSTIRSampler(problem.scene, preset="persistent", burn_in=burn_in, m_cap=m_cap), a.steps)
+        name = f"persistent, burn_in={burn_in}, m_cap={m_cap or 'default'}"
+        out[name] = e
+        print(f"| {name} | {e:.5f} | {e / floor if floor > 0 else float('inf'):.2f} | {seconds:.0f} |", flush=True)
+    return out
+
+
+if __name__ == "__main__":
+    main()
