@@ -28,8 +28,9 @@ The light point may be resampled: RIS over several points by area with the targe
 1.4x at 64² (none at 128²), at 3-95x the cost; the edge and the point on it set the noise.
 So may the whole sample (pair, point on the edge, light point; ``edge_candidates``), with the same
 target. At a fixed adjoint, perfect importance sampling of ``|adjoint · F|`` would leave 1/6 of
-the guided variance on the box blocker and 1/93 on the lumpy ``crown`` (3312 edges); 16 candidates
-took the crown's edge variance down 33x for 12x the edge time, the box's 2.9x (64²).
+the guided variance on the box blocker and 1/93 or less on the lumpy ``crown`` (3312 edges; 93x
+and 270x in two runs); 16 candidates took the crown's edge variance down 33x for 12x the edge
+time, the box's 2.9x (64²).
 
 Only edges of the given meshes are sampled (the geometry that moves), and only area lights
 (planar, as Mitsuba's rectangles and meshes are per triangle) are supported: the caller keeps
