@@ -249,19 +249,21 @@ def test_light_points_resampled_per_edge_sample_stay_unbiased():
 def test_whole_edge_samples_resampled_stay_unbiased_with_less_variance_on_a_crown():
     """RIS over 8 whole edge samples (pair, point, light point; target |adjoint · F|) against one,
     on the lumpy crown blocker (792 edges, a few percent on the light's outline), 32², four kept
-    samples per pixel, 20 guided calls each after 4: the means agree within 4 s.e. and the sd
-    drops more than 1.5x (at 64² with 16 candidates: 5.8x); 0 candidates is refused."""
+    samples per pixel, 40 guided calls each after 4: the means agree within 4 s.e. and the sd
+    drops more than 1.4x. Measured 1.9-2.3x on halves of such runs; with 40 calls the log of
+    the ratio has an s.e. of about 0.16, so 1.4 sits about 2 s.e. from both 2.0 and 1 (no
+    gain); a uniform target instead of |adjoint · F| gave 0.5x. 0 candidates is refused."""
     import math
 
     from torchir.integrators import _shadow_edges
 
     res = 32
     problem = _blocker_at_10_degrees(res, blocker="crown", rings=12)
-    one = _edge_gradients(*problem, 4 * res * res, 24, guides={})[4:]
-    eight = _edge_gradients(*problem, 4 * res * res, 24, guides={}, edge_candidates=8)[4:]
+    one = _edge_gradients(*problem, 4 * res * res, 44, guides={})[4:]
+    eight = _edge_gradients(*problem, 4 * res * res, 44, guides={}, edge_candidates=8)[4:]
     se = math.sqrt((one.var(ddof=1) + eight.var(ddof=1)) / len(one))
     assert abs(one.mean()) > 8 * se and abs(eight.mean() - one.mean()) < 4 * se, (one.mean(), eight.mean(), se)
-    assert one.std(ddof=1) > 1.5 * eight.std(ddof=1), (one.std(), eight.std())
+    assert one.std(ddof=1) > 1.4 * eight.std(ddof=1), (one.std(), eight.std())
     scene, _, adjoint, blocker = problem
     with pytest.raises(ValueError, match="edge_candidates"):
         _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, 16, 0, None, edge_candidates=0)
