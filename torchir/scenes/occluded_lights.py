@@ -24,7 +24,8 @@ from typing import Any
 import mitsuba as mi
 import numpy as np
 
-from ._common import bitmap, painting_texture, perspective, resolution_hw, sphere_grid, triangle_mesh, welded_box
+from ._common import (bitmap, painting_texture, perspective, resolution_hw, sphere_grid, transform_points, triangle_mesh,
+                      welded_box)
 
 DESCRIPTION = "blocker shadow on a textured floor, small light + mostly hidden large light; direct illumination (prb, max_depth 2); recover the floor texture (or the blocker's rotation)"
 PARAMETERS = ("floor.bsdf.reflectance.data",)
@@ -112,5 +113,4 @@ def _crown(name: str, to_world: mi.ScalarTransform4f, bsdf: dict[str, Any], ring
     bumps = np.random.default_rng(3).normal(size=(12, 3))
     bumps /= np.linalg.norm(bumps, axis=1, keepdims=True)
     radius = 1.0 + 0.25 * np.exp((d @ bumps.T - 1.0) / 0.08).sum(1)
-    m = np.array(to_world.matrix, dtype=np.float64)
-    return triangle_mesh(name, (d * radius[:, None]) @ m[:3, :3].T + m[:3, 3], faces, bsdf)
+    return triangle_mesh(name, transform_points(to_world, d * radius[:, None]), faces, bsdf)

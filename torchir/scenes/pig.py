@@ -24,6 +24,7 @@ DESCRIPTION = "smooth diffuse blob above a floor, one area light, box filter; di
 PARAMETERS = ("pig.vertex_positions",)
 
 CENTER = (0.0, 0.0, 0.75)  # the blob's centre (the pivot of rigid transforms)
+LIGHT_ORIGIN, LIGHT_TARGET = (-1.6, -1.0, 3.0), (0.0, 0.0, 0.6)  # the main light's centre and where it faces
 
 
 def blob_vertices(rings: int, segments: int) -> tuple[np.ndarray, np.ndarray]:
@@ -87,7 +88,7 @@ def build(resolution: int | tuple[int, int] | None = None, rings: int = 24, segm
         # a square light (side light_size) at z = 3, up and to the left, facing the blob
         "light": {
             "type": "rectangle",
-            "to_world": T().look_at(origin=[-1.6, -1.0, 3.0], target=[0.0, 0.0, 0.6], up=[0, 0, 1]).scale(0.5 * light_size),
+            "to_world": T().look_at(origin=list(LIGHT_ORIGIN), target=list(LIGHT_TARGET), up=[0, 0, 1]).scale(0.5 * light_size),
             "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 25.0 / light_size**2}},
         },
     }
@@ -113,7 +114,7 @@ def _blind(period: float, closed: float = 0.7, half_width: float = 1.3) -> dict[
     """Slats (dark rectangles, ``closed`` of each ``period``) across the main light's beam, in
     the plane a quarter of the way from the light's centre to its target."""
     T = mi.ScalarTransform4f
-    light, target = np.array([-1.6, -1.0, 3.0]), np.array([0.0, 0.0, 0.6])
+    light, target = np.array(LIGHT_ORIGIN), np.array(LIGHT_TARGET)
     middle = light + 0.25 * (target - light)
     frame = T().look_at(origin=middle.tolist(), target=(middle + target - light).tolist(), up=[0, 0, 1])
     dark = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.1}}
