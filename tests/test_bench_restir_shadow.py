@@ -48,6 +48,30 @@ def test_blocker_and_edge_candidates_reach_the_scene_and_every_sampler():
         restir_shadow.parse_args(["--blocker", "tree"])
 
 
+def test_only_full_restir_keeps_shadow_edge_chains_across_steps():
+    """The ablation the benchmark exists for: ReSTIR reuses its shadow-edge samples across steps
+    (one chain per sensor and mesh, confidence gained from the second step on), forward-only and
+    B.2 do not; the defaults start at the fixed starts inside the loss's basin."""
+    import torch
+
+    from torchir.functions import render
+
+    scene, key = restir_shadow.shadow_problem(16)
+    chains = {}
+    for method in ("ReSTIR", "forward-only", "B.2"):
+        sampler = restir_shadow.sampler_for(method, scene, 1)
+        for step in range(3):
+            theta = torch.tensor([10.0 + step], requires_grad=True)
+            render(scene, {key: theta}, spp=1, seed=step, sampler=sampler).sum().backward()
+            assert torch.isfinite(theta.grad).all() and theta.grad.abs().item() > 0
+        chains[method] = sampler.integrator._edge_chains
+    (per_mesh,) = chains["ReSTIR"].values()
+    (chain,) = per_mesh.values()
+    assert chain.confidence == 2.0 and chain.scale > 0  # step 1 has no floor: M = 0, 1, 2 after steps 1-3
+    assert chains["forward-only"] == {} and chains["B.2"] == {}
+    assert restir_shadow.parse_args([]).starts == [20.0, -20.0, 30.0, -30.0]
+
+
 def test_spread_table_ranks_by_variance_times_time():
     spread = {"ReSTIR": {"mean": 2.0, "sd": 0.2, "seconds_per_step": 0.1, "var_x_time": 0.004},
               "B.2": {"mean": 2.0, "sd": 0.4, "seconds_per_step": 0.05, "var_x_time": 0.008}}

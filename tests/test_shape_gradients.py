@@ -268,3 +268,80 @@ def test_whole_edge_samples_resampled_stay_unbiased_with_less_variance_on_a_crow
     with pytest.raises(ValueError, match="edge_candidates"):
         _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, 16, 0, None, edge_candidates=0)
 
+
+
+def _chain_gradients(scene, pose, adjoint, blocker, samples: int, chains_count: int, steps: int, other_degrees: float,
+                     cap: float = 32.0) -> np.ndarray:
+    """The last step's shadow-edge derivative at 10 degrees of ``chains_count`` independent
+    temporal chains, each run ``steps`` calls with the pose alternating between
+    ``other_degrees`` and 10 (so each chain's sample is re-evaluated on moved geometry)."""
+    import math
+
+    import drjit as dr
+
+    from torchir.integrators import _shadow_edges
+
+    out = []
+    for r in range(chains_count):
+        chains = {}
+        for s in range(steps):
+            theta = mi.Float(math.radians(10.0 if (steps - 1 - s) % 2 == 0 else other_degrees))
+            dr.enable_grad(theta)
+            pose(theta)
+            _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, samples, 7919 * r + s, None, 1, 1, chains, cap)
+        out.append(dr.grad(theta)[0])
+    return np.array(out)
+
+
+def test_temporal_edge_chains_stay_unbiased_on_moving_geometry_with_less_variance():
+    """Temporal reuse of whole shadow-edge samples (each slot's sample re-evaluated under the
+    moved blocker, one fresh candidate a step, constant MIS weights over floored targets), on
+    the 12-ring crown at 32², one kept sample per pixel, the pose alternating 13 and 10 degrees:
+    the last of 8 steps of 48 independent chains against 192 single calls without reuse. The
+    means agree within 4 s.e. and the variance drops more than 3x (measured 7.5x with the
+    chains' confidence capped at 4 after each move; the log of the ratio has an s.e. of about
+    0.23 here, so 3x sits 4 s.e. below). Dropping the chain's confidence from its MIS weight
+    fails the means. Bad options are refused."""
+    import math
+
+    from torchir.integrators import _shadow_edges
+
+    res = 32
+    scene, pose, adjoint, blocker = _blocker_at_10_degrees(res, blocker="crown", rings=12)
+    plain = _edge_gradients(scene, pose, adjoint, blocker, res * res, 192)
+    chained = _chain_gradients(scene, pose, adjoint, blocker, res * res, 48, 8, 13.0)
+    se = math.sqrt(plain.var(ddof=1) / len(plain) + chained.var(ddof=1) / len(chained))
+    assert abs(plain.mean()) > 8 * se and abs(chained.mean() - plain.mean()) < 4 * se, (plain.mean(), chained.mean(), se)
+    assert plain.var(ddof=1) > 3 * chained.var(ddof=1), (plain.std(), chained.std())
+    with pytest.raises(ValueError, match="one light candidate"):
+        _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, 16, 0, None, 2, 1, {})
+    with pytest.raises(ValueError, match="cap"):
+        _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, 16, 0, None, 1, 1, {}, 0.5)
+
+
+def test_temporal_edge_chains_with_no_adjoint_stay_empty_and_exactly_zero():
+    """Extremes: a zero adjoint gives no gradient, no NaN, and the chains never gain
+    confidence (nothing was found, so no floor can be set); an adjoint switched on later
+    then gives a finite, nonzero gradient."""
+    import math
+
+    import drjit as dr
+
+    from torchir.integrators import _shadow_edges
+
+    res = 16
+    scene, pose, adjoint, blocker = _blocker_at_10_degrees(res, blocker="crown", rings=6)
+    zero = mi.TensorXf(dr.zeros(mi.Float, dr.width(adjoint.array)), adjoint.shape)
+    chains = {}
+    for step, grad_in in enumerate([zero, zero, zero, adjoint, adjoint]):
+        theta = mi.Float(math.radians(10.0))
+        dr.enable_grad(theta)
+        pose(theta)
+        _shadow_edges.shadow_edge_backward(scene, 0, grad_in, blocker, 4 * res * res, step, None, 1, 1, chains)
+        g = dr.grad(theta)[0]
+        (chain,) = chains.values()
+        if step < 3:
+            assert g == 0.0 and chain.confidence == 0.0 and chain.scale == 0.0
+        else:
+            assert math.isfinite(g) and g != 0.0 and chain.scale > 0
+    assert chain.confidence == 1.0  # the first step with a floor counts; the one before it had none

@@ -62,13 +62,44 @@ def supported(scene: mi.Scene, sensor: mi.Sensor, meshes: list) -> bool:
     return seen_whole(sensor, meshes) and bool(emitters) and all(e.get_shape() is not None for e in emitters)
 
 
+CHAIN_FLOOR = 0.01  # a chain's target floor, as a share of the last step's mean |g| / p
+
+
+@dataclass
+class EdgeChain:
+    """Temporal reuse of one mesh's shadow-edge samples: per sample slot, the sample kept so far at
+    primary-sample coordinates (``pair``, ``along`` its edge, ``light`` on the pair's light), its
+    contribution weight ``weight`` (W), the mesh's vertex ``positions`` it was chosen on and the
+    chain's ``confidence`` (M, capped at ``cap``);
+    ``samples`` and ``pairs`` the shape it was made for, ``scale`` the last step's mean |g| / p.
+    :meth:`empty` starts one."""
+
+    cap: float
+    pair: mi.UInt32 | None = None
+    along: mi.Float | None = None
+    light: mi.Point2f | None = None
+    weight: mi.Float | None = None
+    positions: mi.Float | None = None
+    confidence: float = 0.0
+    samples: int = 0
+    pairs: int = 0
+    scale: float = 0.0
+
+    @classmethod
+    def empty(cls, cap: float) -> "EdgeChain":
+        if not cap >= 1:
+            raise ValueError(f"an edge chain's cap must be >= 1, got {cap}")
+        return cls(float(cap))
+
+
 GUIDE_MEMORY = 0.1  # weight of a step's estimate in a guide's running mean
 GUIDE_DEFENSIVE = 0.25  # share of the (edge, light) choice that stays by length x light pmf
 
 
 def shadow_edge_backward(
     scene: mi.Scene, sensor_index: int, grad_in: mi.TensorXf, meshes: list, samples: int, seed: int,
-    guides: dict | None = None, candidates: int = 1, edge_candidates: int = 1,
+    guides: dict | None = None, candidates: int = 1, edge_candidates: int = 1, chains: dict | None = None,
+    chain_cap: float = 32.0, moving_cap: float = 4.0,
 ) -> None:
     """Accumulate into the meshes' grad-enabled vertex positions the shadow-edge derivative of
     ``sum(grad_in * image)``: ``samples`` edge samples in all, split over ``meshes`` by edge
@@ -83,9 +114,20 @@ def shadow_edge_backward(
     ``candidates``: light points per edge sample, one kept by RIS with the target
     ``|adjoint · F|`` (paper 004 R21; 1: by area alone). ``edge_candidates``: whole edge samples
     (pair, point on the edge, light point) per sample kept, one kept by RIS with the same target
-    (1: the pair's pmf alone)."""
+    (1: the pair's pmf alone).
+
+    ``chains`` (a dict kept by the caller across steps, or None): temporal reuse of the whole
+    edge samples (paper 004 Alg. 6, with the edge sample itself in the reservoir rather than
+    the light point alone). Each sample slot keeps its chain's sample, re-evaluates it under the
+    step's adjoint and geometry and resamples it against the ``edge_candidates`` fresh ones,
+    its confidence capped at ``chain_cap``, or at ``moving_cap`` for a step after the mesh moved (a
+    kept sample's error then lasts fewer steps). Unbiased: the targets carry a small floor
+    (``CHAIN_FLOOR``) so that constant MIS weights cover samples whose target was 0 at an
+    earlier step. Needs ``candidates == 1``."""
     if candidates < 1 or edge_candidates < 1:
         raise ValueError(f"candidates and edge_candidates must be >= 1, got {candidates}, {edge_candidates}")
+    if chains is not None and candidates != 1:
+        raise ValueError(f"temporal edge reuse needs one light candidate per edge sample, got {candidates}")
     sensor = scene.sensors()[sensor_index]
     tables = [edges_of(m) for m in meshes]
     with dr.suspend_grad():
@@ -99,7 +141,11 @@ def shadow_edge_backward(
         guide = None if guides is None else guides.get(mesh.id())
         if guide is not None and guide.shape != (len(table.a), len(scene.emitters())):
             guide = None  # another mesh or light set: start afresh
-        found = _mesh_backward(scene, sensor, grad_in, mesh, table, length, n, mi.sample_tea_32(seed, i)[0], _EPS * extent, guide, candidates, edge_candidates)
+        chain = None if chains is None else chains.get(mesh.id()) or EdgeChain.empty(chain_cap)
+        found, chain = _mesh_backward(scene, sensor, grad_in, mesh, table, length, n, mi.sample_tea_32(seed, i)[0], _EPS * extent, guide,
+                                      candidates, edge_candidates, chain, moving_cap)
+        if chains is not None:
+            chains[mesh.id()] = chain
         if guides is not None:
             guides[mesh.id()] = found if guide is None else (1 - GUIDE_MEMORY) * guide + GUIDE_MEMORY * found
 
@@ -119,9 +165,12 @@ def _pair_pmf(lengths: np.ndarray, light_pmf: np.ndarray, guide: np.ndarray | No
 
 
 def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.ndarray, n: int, seed: int,
-                   eps: float, guide: np.ndarray | None, candidates: int = 1, edge_candidates: int = 1) -> np.ndarray:
+                   eps: float, guide: np.ndarray | None, candidates: int = 1, edge_candidates: int = 1,
+                   chain: EdgeChain | None = None, moving_cap: float = 4.0) -> tuple[np.ndarray, EdgeChain | None]:
     """One mesh's samples (see :func:`shadow_edge_backward`); returns this step's estimate of
-    ``sum |adjoint * contribution|`` per (edge, light) pair, for the guide."""
+    ``sum |adjoint * contribution|`` per (edge, light) pair, for the guide, and the updated
+    ``chain`` (None without one); ``moving_cap`` caps the chain's confidence where the mesh moved
+    since the chain's last step."""
     film_w, film_h = (int(v) for v in sensor.film().crop_size())
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
@@ -131,32 +180,65 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.n
         pmf = _pair_pmf(lengths, light_pmf, guide)
         pair_pick = mi.DiscreteDistribution(mi.Float(pmf.astype(np.float32)))
         lengths_dr = mi.Float(lengths.astype(np.float32))
-        chosen, total = None, mi.Float(0.0)
+        prior = 0.0  # the chain's confidence M: its sample counts as M candidates
+        if chain is not None:  # the target's floor: a share of the last step's sum |g|, spread by length x light pmf
+            default = np.outer(lengths, light_pmf).ravel()
+            default_dr = mi.Float((default / default.sum()).astype(np.float32))
+            floor = dr.opaque(mi.Float, CHAIN_FLOOR * chain.scale)  # opaque: one kernel for every step
+            prior = chain.confidence if (chain.samples, chain.pairs) == (n, len(pmf)) else 0.0
+        positions = mi.Float(mesh.vertex_positions_buffer())
+        if prior > 0 and not bool(dr.all(chain.positions == positions)):
+            prior = min(prior, moving_cap)  # the geometry moved: a short memory (as the interior term's)
+        share = dr.opaque(mi.Float, 1.0 / (prior + edge_candidates))  # each fresh candidate's MIS weight
+        chosen, total, scale = None, mi.Float(0.0), mi.Float(0.0)
         for _ in range(edge_candidates):
             # the (edge, light) pair by _pair_pmf, xB uniform along the edge
             pair, along = pair_pick.sample_reuse(sampler.next_1d())
-            edge, emitter_index = pair // n_lights, pair % n_lights
-            inv_pdf_edge = dr.gather(mi.Float, lengths_dr, edge) * pair_pick.sum() / pair_pick.eval_pmf(pair)
-            a, b, c1, c2 = endpoints(mesh, table, edge)
-            ends = _EdgePoint(xb=dr.lerp(a, b, along), tangent=dr.normalize(b - a), third1=c1, third2=c2)
-            emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), emitter_index)
+            pdf = pair_pick.eval_pmf(pair) / pair_pick.sum()
+            inv_pdf_edge = dr.gather(mi.Float, lengths_dr, pair // n_lights) / pdf
 
             # x0 on the pair's light: RIS over `candidates` points by area, target |adjoint * F|
             # (paper 004 R21); the kept one's estimate is sign(F(y)) * mean(|F_k| / p_k)
             kept, w_sum = None, mi.Float(0.0)
             for _ in range(candidates):
-                cand = _light_candidate(scene, sensor, grad_in, emitter, ends, sampler.next_2d(), eps, (film_w, film_h))
+                cand = _edge_sample(scene, sensor, grad_in, mesh, table, pair, along, sampler.next_2d(), n_lights, eps, (film_w, film_h))
                 w = dr.abs(cand["weight"])
                 w_sum += w
                 kept = cand if kept is None else _pick(sampler.next_1d() * w_sum < w, cand, kept)
-            kept["estimate"] = dr.sign(kept["weight"]) * w_sum * inv_pdf_edge / candidates
-            kept["pair"], kept["along"] = pair, along
-
-            # the whole edge sample by RIS over `edge_candidates`, the same target
-            w = dr.abs(kept["estimate"])
+            estimate = dr.sign(kept["weight"]) * w_sum * inv_pdf_edge / candidates  # g(y) / p(y)
+            # the whole edge sample by RIS over `edge_candidates` (and the chain's sample), the
+            # same target: p̂ = |g|, plus with a chain the floor; a candidate's w = share p̂ / p
+            ratio = dr.abs(estimate)
+            scale += ratio
+            if chain is not None:
+                ratio += floor * dr.gather(mi.Float, default_dr, pair) / pdf
+            kept["ratio"] = dr.select(ratio > 0, estimate / ratio, 0.0)  # g / p̂
+            kept["phat"] = ratio * pdf
+            w = share * ratio
             total += w
             chosen = kept if chosen is None else _pick(sampler.next_1d() * total < w, kept, chosen)
-        weight = dr.sign(chosen["estimate"]) * total * (film_w * film_h / (n * edge_candidates))
+        if prior > 0:
+            # the chain's sample, re-evaluated under this step's adjoint and geometry. Constant
+            # MIS weights (M against one per fresh candidate) stay unbiased because every
+            # target has the floor, so each step's sample can land anywhere the fresh ones can.
+            # (The balance heuristic against the target on the chain's geometry was tried: with
+            # rays in today's scene, the moved mesh hides most old silhouette points, so it
+            # kept 1.6x of the variance cut where these weights keep 7x.)
+            old = _edge_sample(scene, sensor, grad_in, mesh, table, chain.pair, chain.along, chain.light, n_lights, eps, (film_w, film_h))
+            g_old = old["weight"] * old["length"]
+            old["phat"] = dr.abs(g_old) + floor * dr.gather(mi.Float, default_dr, chain.pair)
+            old["ratio"] = dr.select(old["phat"] > 0, g_old / old["phat"], 0.0)
+            w = dr.opaque(mi.Float, prior) * share * old["phat"] * chain.weight
+            total += w
+            chosen = _pick(sampler.next_1d() * total < w, old, chosen)
+        if chain is not None:
+            # the chain's confidence starts at 0: the first step's target had no floor
+            chain = EdgeChain(cap=chain.cap, pair=chosen["pair"], along=chosen["along"], light=chosen["light"],
+                              weight=dr.select(chosen["phat"] > 0, total / chosen["phat"], 0.0), positions=positions,
+                              confidence=min(prior + edge_candidates, chain.cap) if chain.scale > 0 else 0.0,
+                              samples=n, pairs=len(pmf), scale=float(dr.sum(scale)[0]) / (n * edge_candidates))
+            dr.eval(chain.pair, chain.along, chain.light, chain.weight, chain.positions)  # else the next step's kernel holds this one's
+        weight = chosen["ratio"] * total * (film_w * film_h / n)
         active = chosen["active"] & (weight != 0)
         weight = dr.select(active, weight, 0.0)
         pair, along = chosen["pair"], chosen["along"]
@@ -178,7 +260,20 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.n
         objective = dr.sum(dr.select(active, weight * dr.dot(chosen["into_shadow"], x0_t), 0.0))
         if dr.grad_enabled(objective):
             dr.backward(objective)
-    return np.asarray(found, np.float64).reshape(len(table.a), n_lights)
+    return np.asarray(found, np.float64).reshape(len(table.a), n_lights), chain
+
+
+def _edge_sample(scene, sensor, grad_in, mesh, table: EdgeTable, pair: mi.UInt32, along: mi.Float, light: mi.Point2f,
+                 n_lights: int, eps: float, film: tuple[int, int]) -> dict:
+    """The edge sample at primary-sample coordinates (``pair``, ``along`` the edge, ``light`` on
+    the pair's light): :func:`_light_candidate`'s fields plus those coordinates and the edge's
+    ``length``."""
+    a, b, c1, c2 = endpoints(mesh, table, pair // n_lights)
+    ends = _EdgePoint(xb=dr.lerp(a, b, along), tangent=dr.normalize(b - a), third1=c1, third2=c2)
+    emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), pair % n_lights)
+    out = _light_candidate(scene, sensor, grad_in, emitter, ends, light, eps, film)
+    out["pair"], out["along"], out["light"], out["length"] = mi.UInt32(pair), mi.Float(along), mi.Point2f(light), dr.norm(b - a)
+    return out
 
 
 def _pick(take: mi.Bool, new: dict, old: dict) -> dict:

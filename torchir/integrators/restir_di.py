@@ -236,6 +236,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     edge_guiding = True  # (edge, light) pairs drawn by what earlier steps found (_shadow_edges; False: by length)
     edge_light_candidates = 1  # light points per shadow-edge sample, one kept by RIS (R21; see _shadow_edges)
     edge_candidates = 1  # whole shadow-edge samples per sample kept, one kept by RIS (see _shadow_edges)
+    edge_temporal = True  # shadow-edge samples reused across steps (chains; with temporal reuse, not forward_only; see _shadow_edges)
+    edge_chain_cap = 32.0  # a shadow-edge chain's confidence cap, in candidates
     silhouette_sampling = False  # primary silhouettes sampled on the moving meshes' edges (_silhouettes; False: direct_projective's)
     silhouette_candidates = 16  # RIS light candidates on either side of a silhouette sample (bench restir_silhouette)
     moving_geometry_m_cap = 4  # the M cap of temporal reuse after the geometry moved (see sample_paths; 0: m_cap)
@@ -287,6 +289,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self._frozen_pass = None
         self._boundary_integrators: dict[tuple[bool, bool], mi.Integrator] = {}  # direct_projective, by (secondary, primary)
         self._edge_guides: dict[str, np.ndarray] = {}  # per mesh, see _shadow_edges.shadow_edge_backward
+        self._edge_chains: dict[int, dict[str, Any]] = {}  # per sensor and mesh, likewise
         self._geometry_watch = GeometryWatch()
         self._geometry_seen: tuple | None = None  # geometry at the last step
         self._geometry_frozen: tuple | None = None  # geometry the frozen pass was recorded with
@@ -328,6 +331,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.states.clear()
         self.last.clear()
         self._edge_guides.clear()
+        self._edge_chains.clear()
 
     def state(self, scene: mi.Scene, sensor: int) -> SensorState:
         sig = _signature(scene)
@@ -732,11 +736,13 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         """The visibility-boundary terms. Shadow edges of the differentiated meshes, where
         :func:`_shadow_edges.supported` (area lights, a perspective sensor), come from edge
         samples on those meshes alone (``spp`` per pixel, guided by the earlier steps' samples
-        unless ``edge_guiding`` is off); with ``silhouette_sampling``, where
+        unless ``edge_guiding`` is off, and with ``edge_temporal`` and temporal reuse each
+        sample resampled against the one it kept at the last step, the chain's confidence capped at
+        ``edge_chain_cap``, or ``moving_geometry_m_cap`` after the mesh moved); with ``silhouette_sampling``, where
         :func:`_silhouettes.supported` (also a box filter), the primary silhouettes likewise
         (``silhouette_candidates`` RIS light candidates either side, no reuse); the rest from
-        ``direct_projective``. The guides are a variance heuristic only: not saved in
-        checkpoints, rebuilt after a resume."""
+        ``direct_projective``. The guides and the edge chains are not saved in checkpoints:
+        after a resume they start afresh (the chains' first step is without reuse)."""
         meshes = _differentiated_meshes(scene, params)
         sensor_obj = scene.sensors()[sensor]
         edges = self.shadow_edge_sampling and _shadow_edges.supported(scene, sensor_obj, meshes)
@@ -750,8 +756,11 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                                              candidates=self.silhouette_candidates)
         if edges:
             guides = self._edge_guides if self.edge_guiding else None
+            reuse = self.edge_temporal and self.temporal and not self.forward_only
+            chains = self._edge_chains.setdefault(sensor, {}) if reuse else None  # per sensor: its own adjoint
             _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]), guides,
-                                               self.edge_light_candidates, self.edge_candidates)
+                                               self.edge_light_candidates, self.edge_candidates, chains, self.edge_chain_cap,
+                                               self.moving_geometry_m_cap if self.moving_geometry_m_cap > 0 else self.edge_chain_cap)
 
     def boundary_integrator(self, secondary: bool = True, primary: bool = True) -> mi.Integrator:
         """Mitsuba's ``direct_projective`` restricted to its boundary terms (``sppc=0``; with
