@@ -12,8 +12,6 @@ runs with longer chains (burn-in passes, chain cap ``m_cap``). Errors are RMS ov
 from __future__ import annotations
 
 import argparse
-import math
-import statistics
 import time
 
 import torchir  # before torch: it sets OMP_WAIT_POLICY
@@ -36,14 +34,12 @@ def main(argv=None) -> dict[str, float]:
     torchir.backend.set_variant("auto")
     b = restir.parse_args(["--scenes", a.scene, "--resolution", str(a.resolution), "--ref-spp", str(a.ref_spp)])
     problem = restir.make_problem(a.scene, b)
-    ref_sq = problem.ref_relative_se**2
     print(f"{a.scene} {a.resolution}²: reference relative SE {problem.ref_relative_se:.5f} ({problem.ref_seconds:.0f} s)", flush=True)
 
     def error(sampler, steps: int) -> tuple[float, float]:
-        squares, t0 = [], time.perf_counter()
-        for i in range(steps):
-            squares.append(problem.step(sampler, 1, 1000 + i)[1] ** 2 - ref_sq)
-        return math.sqrt(max(statistics.fmean(squares), 0.0)), time.perf_counter() - t0
+        t0 = time.perf_counter()
+        errors = [problem.step(sampler, 1, 1000 + i)[1] for i in range(steps)]
+        return restir.error_beyond_reference(errors, problem.ref_relative_se)[0], time.perf_counter() - t0
 
     out = {}
     for m in (256, 1024):

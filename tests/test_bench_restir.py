@@ -10,7 +10,8 @@ import pytest
 
 from torchir.bench import SUITES
 from torchir.bench.restir import (
-    ALL_RESTIRS, BASELINES, ORACLE, ORACLE_LOW, bracketing_spps, camera_floor, equal_time_error, equal_time_spp, methods_in, parse_args,
+    ALL_RESTIRS, BASELINES, ORACLE, ORACLE_LOW, bracketing_spps, camera_floor, equal_time_error, equal_time_spp, error_beyond_reference,
+    methods_in, parse_args,
     resolve_scenes, restir_variants, summarize_scene, tables,
 )
 
@@ -234,6 +235,14 @@ def test_options_and_default_scenes():
         resolve_scenes("nope")
 
 
+def test_error_beyond_reference_removes_the_references_own_error_in_quadrature():
+    rms, se = error_beyond_reference([0.05, 0.05], 0.03)
+    assert rms == pytest.approx(0.04) and se == 0.0  # 0.05² = 0.04² + 0.03²
+    rms, se = error_beyond_reference([0.03, 0.05], 0.0)
+    assert rms == pytest.approx(((0.03**2 + 0.05**2) / 2) ** 0.5) and se == pytest.approx((0.05**2 - 0.03**2) / 2)
+    assert error_beyond_reference([0.01], 0.02) == (0.0, 0.0)  # below the reference's noise: 0, not NaN
+
+
 def test_camera_floor_extrapolates_the_oracles():
     """e(M)² = floor² + L / M: two oracles give the floor exactly; one gives its own error."""
     floor, light = 0.01, 1.0
@@ -304,6 +313,9 @@ def test_restir_variants_can_be_run_alone():
     with pytest.raises(ValueError, match="--restirs takes some of shadowed, unshadowed, persistent"):
         restir_variants(["persistent", "fast"])
     assert bench.sampler_options("ReSTIR (persistent)", alone)["preset"] == "persistent"
+    assert bench.sampler_options("ReSTIR (persistent)", alone)["m_cap"] is None  # the preset's own cap
+    long = parse_args(["--restirs", "persistent", "--chain-cap", "16384"])
+    assert bench.sampler_options("ReSTIR (persistent)", long)["m_cap"] == 16384 and "m_cap" not in bench.sampler_options("ReSTIR (shadowed)", long)
     spp_eq = {"direct": 2, "B.1": 2, "B.2": 2, "ReSTIR (persistent)": 1}
     runs = [_run(m, s, [0.3 / math.sqrt(s)] * 2, 0.1 * s) for m in BASELINES for s in (1, 2)]
     runs += [_run("ReSTIR (persistent)", 1, [0.05, 0.05], 0.15), _run(ORACLE, 1, [0.04, 0.04])]

@@ -29,11 +29,13 @@ def test_restir_shadow_runs_at_equal_time_and_writes_its_outputs(tmp_path):
     assert SUITES["restir_shadow"] == "torchir.bench.restir_shadow"
 
 
-def test_only_the_projective_variant_leaves_edge_sampling_off():
+def test_only_the_projective_variant_leaves_edge_sampling_off_and_the_paper_baselines_go_by_length():
     scene, _ = restir_shadow.shadow_problem(8)
     flags = {m: restir_shadow.sampler_for(m, scene, 1).integrator.shadow_edge_sampling
              for m in restir_shadow.METHODS if m != "direct_projective"}
-    assert flags == {"ReSTIR": True, "forward-only": True, "B.2": True, "ReSTIR, projective edges": False}
+    assert flags == {"ReSTIR": True, "forward-only": True, "B.2": True, "B.2, guided edges": True, "ReSTIR, projective edges": False}
+    guided = {m: restir_shadow.sampler_for(m, scene, 1).integrator.edge_guiding for m in restir_shadow.METHODS if m != "direct_projective"}
+    assert guided == {"ReSTIR": True, "forward-only": False, "B.2": False, "B.2, guided edges": True, "ReSTIR, projective edges": True}
 
 
 def test_blocker_and_edge_candidates_reach_the_scene_and_every_sampler():

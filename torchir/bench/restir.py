@@ -83,6 +83,7 @@ from typing import Any
 from torchir.bench import combined
 
 __all__ = ["ALL_RESTIRS", "BASELINES", "METHODS", "ORACLE", "ORACLE_LOW", "bracketing_spps", "camera_floor", "equal_time_error",
+           "error_beyond_reference",
            "main", "methods_in", "parse_args", "plot_results", "restir_variants", "summarize_scene", "tables"]
 
 DEFAULT_SCENES = ("ajar_painting", "many_lights", "oxalis_lite")
@@ -129,6 +130,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                         "extrapolated to M -> infinity from e² = floor² + L/M (one count: that oracle's error)")
     p.add_argument("--burn-in", type=int, default=None, help="ReSTIR burn-in passes, charged to ReSTIR (default 32, quick 8)")
     p.add_argument("--nn-backend", default="auto", choices=("auto", "kdtree", "grid", "screen"))
+    p.add_argument("--chain-cap", type=int, default=None,
+                   help="M cap of the persistent chains (default: the preset's, 64 x candidates; scripts/restir_chains.py measures longer ones)")
     p.add_argument("--grad-steps", type=int, default=None, help="gradient steps per method (default 32, quick 8)")
     p.add_argument("--cal-steps", type=int, default=None, help="timed steps per calibration probe (default 6, quick 2)")
     p.add_argument("--cal-rounds", type=int, default=None, help="calibration probes per method (default 3, quick 1)")
@@ -213,7 +216,7 @@ def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None
     if method == ORACLE_LOW:
         return {"preset": "b2", "candidates": a.oracle_low}
     if method == "ReSTIR (persistent)":
-        return {"preset": "persistent", "candidates": a.candidates, "burn_in": a.burn_in}
+        return {"preset": "persistent", "candidates": a.candidates, "burn_in": a.burn_in, "m_cap": getattr(a, "chain_cap", None)}
     if method in ALL_RESTIRS:
         target = "unshadowed" if "unshadowed" in method else "shadowed"
         return {"candidates": a.candidates, "burn_in": a.burn_in, "target": target, "nn_backend": a.nn_backend}
@@ -294,6 +297,15 @@ def make_problem(name: str, a: argparse.Namespace) -> Problem:
 
 def oracles(a: argparse.Namespace) -> tuple[str, ...]:
     return (ORACLE,) if a.oracle_low is None else (ORACLE_LOW, ORACLE)
+
+
+def error_beyond_reference(errors: Sequence[float], ref_se: float) -> tuple[float, float]:
+    """RMS over steps of relative errors measured against a reference of relative standard
+    error ``ref_se``, that error removed in quadrature (squared errors add): ``(rms, s.e. of
+    the mean square)``; the s.e. is 0 for a single step."""
+    squares = [e * e - ref_se * ref_se for e in errors]
+    se = statistics.stdev(squares) / math.sqrt(len(squares)) if len(squares) > 1 else 0.0
+    return math.sqrt(max(statistics.fmean(squares), 0.0)), se
 
 
 def camera_floor(e_low: float | None, m_low: int | None, e_high: float, m_high: int) -> float:
@@ -479,16 +491,14 @@ def gradient_runs(problem: Problem, a: argparse.Namespace, keys: list[tuple[str,
             r["seconds"].append(seconds)
             r["stage_steps"].append(_stages(diag, seconds))
     out = []
-    ref_sq = problem.ref_relative_se**2
     for k in keys:
         r = runs.pop(k)
-        squares = [e * e - ref_sq for e in r["relerr_steps"]]  # the reference's own error removed
+        relerr, relerr_sq_se = error_beyond_reference(r["relerr_steps"], problem.ref_relative_se)
         step = statistics.median(r["seconds"])
         stages = _median_stages(r["stage_steps"])
         out.append({
             "method": r["method"], "spp": r["spp"], "relerr_steps": r["relerr_steps"],
-            "relerr": math.sqrt(max(statistics.fmean(squares), 0.0)),  # RMS over steps: squared errors add
-            "relerr_sq_se": statistics.stdev(squares) / math.sqrt(len(squares)),
+            "relerr": relerr, "relerr_sq_se": relerr_sq_se,
             "seconds_per_step": step, "burn_in_seconds": r["burn_in"],
             "charged_seconds_per_step": step + r["burn_in"] / a.grad_steps, "stages": stages,
         })

@@ -7,9 +7,12 @@ recovered from the image alone, from several starts, with Adam on the L2 loss. M
 
 * **ReSTIR**: spatiotemporal reuse (``ReSTIRSampler`` defaults) + boundary terms, the shadow-edge
   samples reused across steps (``edge_temporal``);
-* **forward-only**: reuse for the image; plain RIS for the interior gradient and shadow-edge
-  samples without reuse;
-* **B.2**: RIS with the same candidates, no reuse;
+* **forward-only**: reuse for the image; plain RIS for the interior gradient, and shadow-edge
+  samples without reuse, by edge length (the paper's edge guiding, Eq. 27, is a by-product of
+  its edge reservoirs);
+* **B.2**: RIS with the same candidates, no reuse, edges by length (as the paper's B.2);
+* **B.2, guided edges**: B.2 with torchir's edge guide (a running estimate across steps, kept
+  by every preset unless ``edge_guiding`` is off): a stronger baseline than the paper's;
 * **ReSTIR, projective edges**: ReSTIR with the shadow edges from ``direct_projective`` (every
   edge of the scene) instead of edge samples on the blocker alone;
 * **direct_projective**: Mitsuba's own integrator (no guiding), no ``ReSTIRSampler``.
@@ -49,7 +52,7 @@ from torchir.functions import render
 from torchir.samplers import ReSTIRSampler
 from torchir.scenes.occluded_lights import BLOCKER_CENTER
 
-METHODS = ("ReSTIR", "forward-only", "B.2", "ReSTIR, projective edges", "direct_projective")
+METHODS = ("ReSTIR", "forward-only", "B.2", "B.2, guided edges", "ReSTIR, projective edges", "direct_projective")
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
@@ -87,10 +90,13 @@ def shadow_problem(resolution: int, integrator: dict[str, Any] | None = None, bl
 def sampler_for(method: str, scene: torchir.Scene, burn_in: int, edge_candidates: int = 1) -> ReSTIRSampler | None:
     if method == "direct_projective":
         return None
-    preset = {"ReSTIR": "restir", "forward-only": "forward_only", "B.2": "b2", "ReSTIR, projective edges": "restir"}[method]
+    preset = {"ReSTIR": "restir", "forward-only": "forward_only", "B.2": "b2", "B.2, guided edges": "b2",
+              "ReSTIR, projective edges": "restir"}[method]
     sampler = ReSTIRSampler(scene, preset=preset, burn_in=burn_in)
     if method == "ReSTIR, projective edges":
         sampler.integrator.shadow_edge_sampling = False
+    if method in ("forward-only", "B.2"):  # the paper's: edge guiding is a by-product of its edge reservoirs (Eq. 27)
+        sampler.integrator.edge_guiding = False
     sampler.integrator.edge_candidates = edge_candidates
     return sampler
 
