@@ -27,6 +27,9 @@ def main(argv=None) -> dict[str, float]:
     p.add_argument("--oracle-steps", type=int, default=256,
                    help="steps of each floor oracle (as the bench's; 32 put many_lights' floor 24%% higher)")
     p.add_argument("--ref-spp", type=int, default=16384)
+    p.add_argument("--chains", default=None,
+                   help="burn_in:m_cap pairs to run, comma-separated (m_cap 0: the preset's; default: "
+                        + ",".join(f"{b}:{m or 0}" for b, m in CHAINS) + ")")
     a = p.parse_args(argv)
 
     from torchir.bench import restir
@@ -48,8 +51,9 @@ def main(argv=None) -> dict[str, float]:
     floor = restir.camera_floor(out["RIS 256"], 256, out["RIS 1024"], 1024)
     out["floor"] = floor
     print(f"| run | relative error | x floor | seconds |\n|---|---|---|---|\n| floor (extrapolated) | {floor:.5f} | 1 | |", flush=True)
-    for burn_in, m_cap in CHAINS:
-        e, seconds = error(ReSTIRSampler(problem.scene, preset="persistent", burn_in=burn_in, m_cap=m_cap), a.steps)
+    chains = CHAINS if a.chains is None else [tuple(int(v) for v in c.split(":")) for c in a.chains.split(",")]
+    for burn_in, m_cap in chains:
+        e, seconds = error(ReSTIRSampler(problem.scene, preset="persistent", burn_in=burn_in, m_cap=m_cap or None), a.steps)
         name = f"persistent, burn_in={burn_in}, m_cap={m_cap or 'default'}"
         out[name] = e
         print(f"| {name} | {e:.5f} | {e / floor if floor > 0 else float('inf'):.2f} | {seconds:.0f} |", flush=True)
