@@ -72,7 +72,7 @@ class EdgeChain:
     contribution weight ``weight`` (W), the mesh's vertex ``positions`` it was chosen on and the
     chain's ``confidence`` (M, capped at ``cap``);
     ``samples`` and ``pairs`` the shape it was made for, ``scale`` the last step's mean |g| / p.
-    :meth:`empty` starts one."""
+    ``EdgeChain(cap)`` starts one."""
 
     cap: float
     pair: mi.UInt32 | None = None
@@ -84,12 +84,6 @@ class EdgeChain:
     samples: int = 0
     pairs: int = 0
     scale: float = 0.0
-
-    @classmethod
-    def empty(cls, cap: float) -> "EdgeChain":
-        if not cap >= 1:
-            raise ValueError(f"an edge chain's cap must be >= 1, got {cap}")
-        return cls(float(cap))
 
 
 GUIDE_MEMORY = 0.1  # weight of a step's estimate in a guide's running mean
@@ -128,6 +122,8 @@ def shadow_edge_backward(
         raise ValueError(f"candidates and edge_candidates must be >= 1, got {candidates}, {edge_candidates}")
     if chains is not None and candidates != 1:
         raise ValueError(f"temporal edge reuse needs one light candidate per edge sample, got {candidates}")
+    if chains is not None and not min(chain_cap, moving_cap) >= 1:
+        raise ValueError(f"an edge chain's cap and moving cap must be >= 1, got {chain_cap}, {moving_cap}")
     sensor = scene.sensors()[sensor_index]
     tables = [edges_of(m) for m in meshes]
     with dr.suspend_grad():
@@ -141,7 +137,9 @@ def shadow_edge_backward(
         guide = None if guides is None else guides.get(mesh.id())
         if guide is not None and guide.shape != (len(table.a), len(scene.emitters())):
             guide = None  # another mesh or light set: start afresh
-        chain = None if chains is None else chains.get(mesh.id()) or EdgeChain.empty(chain_cap)
+        chain = None if chains is None else chains.get(mesh.id()) or EdgeChain(float(chain_cap))
+        if chain is not None:
+            chain.cap = float(chain_cap)  # the caller's cap of today
         found, chain = _mesh_backward(scene, sensor, grad_in, mesh, table, length, n, mi.sample_tea_32(seed, i)[0], _EPS * extent, guide,
                                       candidates, edge_candidates, chain, moving_cap)
         if chains is not None:
