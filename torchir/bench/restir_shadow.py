@@ -30,6 +30,7 @@ within ``--tolerance`` degrees of the truth.
 Usage:
     python -m torchir.bench.restir_shadow --quick    # 32², 2 starts, 20 steps (< 1 min)
     python -m torchir.bench.restir_shadow            # 64², starts +-20, +-30 degrees, 80 steps
+    python -m torchir.bench.restir_shadow --methods ReSTIR "B.2, guided edges"   # some methods only
 
 Writes ``<out>/results.json``, ``<out>/summary.md`` and ``<out>/shadow.png`` (angle against
 wall time).
@@ -71,6 +72,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                    help="occluded_lights' blocker: a box (12 edges) or a lumpy crown (3312 edges, most never on a shadow's outline)")
     p.add_argument("--edge-candidates", type=int, default=1,
                    help="whole shadow-edge samples per kept sample, RIS (the integrator's edge_candidates), for every torchir method")
+    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), metavar="METHOD",
+                   help="methods to run, in this order (quote names with spaces; default all: "
+                        + "; ".join(METHODS) + "); the first sets the time budget")
     p.add_argument("--quick", action="store_true")
     p.add_argument("--out", default="results/bench_restir_shadow")
     a = p.parse_args(argv)
@@ -127,7 +131,7 @@ def gradient_spread(problems: dict[str, tuple], target, a) -> dict[str, dict[str
     the sampler's state carried as in a run): mean, standard deviation and median seconds per
     step; ``var_x_time`` = variance x seconds, the figure equal time compares."""
     out = {}
-    for method in METHODS:
+    for method in a.methods:
         scene, key = problems[method]
         sampler = sampler_for(method, scene, a.burn_in, a.edge_candidates)
         extra = {} if sampler is None else {"sampler": sampler}
@@ -183,20 +187,20 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     scene, key = shadow_problem(a.resolution, blocker=a.blocker)
     plain, plain_key = shadow_problem(a.resolution, {"type": "direct_projective", "guiding": "none"}, blocker=a.blocker)
     target = render(plain, {plain_key: torch.tensor([0.0])}, spp=a.target_spp, seed=7).detach()
-    problems = {m: (plain, plain_key) if m == "direct_projective" else (scene, key) for m in METHODS}
-    for method in METHODS:  # compile every method's kernels before timing (a short burn-in)
+    problems = {m: (plain, plain_key) if m == "direct_projective" else (scene, key) for m in a.methods}
+    for method in a.methods:  # compile every method's kernels before timing (a short burn-in)
         s, k = problems[method]
         fit(s, k, target, a.starts[0], sampler_for(method, s, 1, a.edge_candidates), a, 2, None)
     spread = gradient_spread(problems, target, a)
-    results: dict[str, list[dict[str, Any]]] = {m: [] for m in METHODS}
+    results: dict[str, list[dict[str, Any]]] = {m: [] for m in a.methods}
     for start in a.starts:
         budget = None
-        for method in METHODS:
+        for method in a.methods:
             s, k = problems[method]
             t0 = time.perf_counter()
             sampler = sampler_for(method, s, a.burn_in, a.edge_candidates)
             run = fit(s, k, target, start, sampler, a, a.steps if budget is None else 4 * a.steps, budget)
-            if budget is None:  # ReSTIR sets the budget, its burn-in (in the first render) included
+            if budget is None:  # the first method (ReSTIR by default) sets the budget, its burn-in (in the first render) included
                 budget = time.perf_counter() - t0
             results[method].append(run)
             print(f"{method} from {start:+.0f}: final {run['final']:.2f} in {run['steps']} steps, {run['seconds']:.1f} s", flush=True)
