@@ -216,7 +216,7 @@ def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None
     if method == ORACLE_LOW:
         return {"preset": "b2", "candidates": a.oracle_low}
     if method == "ReSTIR (persistent)":
-        return {"preset": "persistent", "candidates": a.candidates, "burn_in": a.burn_in, "m_cap": getattr(a, "chain_cap", None)}
+        return {"preset": "persistent", "candidates": a.candidates, "burn_in": a.burn_in, "m_cap": a.chain_cap}
     if method in ALL_RESTIRS:
         target = "unshadowed" if "unshadowed" in method else "shadowed"
         return {"candidates": a.candidates, "burn_in": a.burn_in, "target": target, "nn_backend": a.nn_backend}

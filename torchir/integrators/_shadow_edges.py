@@ -70,11 +70,9 @@ class EdgeChain:
     """Temporal reuse of one mesh's shadow-edge samples: per sample slot, the sample kept so far at
     primary-sample coordinates (``pair``, ``along`` its edge, ``light`` on the pair's light), its
     contribution weight ``weight`` (W), the mesh's vertex ``positions`` it was chosen on and the
-    chain's ``confidence`` (M, capped at ``cap``);
-    ``samples`` and ``pairs`` the shape it was made for, ``scale`` the last step's mean |g| / p.
-    ``EdgeChain(cap)`` starts one."""
+    chain's ``confidence`` (M); ``samples`` and ``pairs`` the shape it was made for, ``scale`` the
+    last step's mean |g| / p. ``EdgeChain()`` starts one."""
 
-    cap: float
     pair: mi.UInt32 | None = None
     along: mi.Float | None = None
     light: mi.Point2f | None = None
@@ -137,11 +135,9 @@ def shadow_edge_backward(
         guide = None if guides is None else guides.get(mesh.id())
         if guide is not None and guide.shape != (len(table.a), len(scene.emitters())):
             guide = None  # another mesh or light set: start afresh
-        chain = None if chains is None else chains.get(mesh.id()) or EdgeChain(float(chain_cap))
-        if chain is not None:
-            chain.cap = float(chain_cap)  # the caller's cap of today
+        chain = None if chains is None else chains.get(mesh.id()) or EdgeChain()
         found, chain = _mesh_backward(scene, sensor, grad_in, mesh, table, length, n, mi.sample_tea_32(seed, i)[0], _EPS * extent, guide,
-                                      candidates, edge_candidates, chain, moving_cap)
+                                      candidates, edge_candidates, chain, chain_cap, moving_cap)
         if chains is not None:
             chains[mesh.id()] = chain
         if guides is not None:
@@ -164,11 +160,11 @@ def _pair_pmf(lengths: np.ndarray, light_pmf: np.ndarray, guide: np.ndarray | No
 
 def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.ndarray, n: int, seed: int,
                    eps: float, guide: np.ndarray | None, candidates: int = 1, edge_candidates: int = 1,
-                   chain: EdgeChain | None = None, moving_cap: float = 4.0) -> tuple[np.ndarray, EdgeChain | None]:
+                   chain: EdgeChain | None = None, chain_cap: float = 32.0, moving_cap: float = 4.0) -> tuple[np.ndarray, EdgeChain | None]:
     """One mesh's samples (see :func:`shadow_edge_backward`); returns this step's estimate of
     ``sum |adjoint * contribution|`` per (edge, light) pair, for the guide, and the updated
-    ``chain`` (None without one); ``moving_cap`` caps the chain's confidence where the mesh moved
-    since the chain's last step."""
+    ``chain`` (None without one), its confidence capped at ``chain_cap``, or at ``moving_cap`` where
+    the mesh moved since the chain's last step."""
     film_w, film_h = (int(v) for v in sensor.film().crop_size())
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
@@ -180,13 +176,12 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.n
         lengths_dr = mi.Float(lengths.astype(np.float32))
         prior = 0.0  # the chain's confidence M: its sample counts as M candidates
         if chain is not None:  # the target's floor: a share of the last step's sum |g|, spread by length x light pmf
-            default = np.outer(lengths, light_pmf).ravel()
-            default_dr = mi.Float((default / default.sum()).astype(np.float32))
+            default_dr = mi.Float(_pair_pmf(lengths, light_pmf, None).astype(np.float32))
             floor = dr.opaque(mi.Float, CHAIN_FLOOR * chain.scale)  # opaque: one kernel for every step
             prior = chain.confidence if (chain.samples, chain.pairs) == (n, len(pmf)) else 0.0
-        positions = mi.Float(mesh.vertex_positions_buffer())
-        if prior > 0 and not bool(dr.all(chain.positions == positions)):
-            prior = min(prior, moving_cap)  # the geometry moved: a short memory (as the interior term's)
+            positions = mi.Float(mesh.vertex_positions_buffer())
+            if prior > 0 and not bool(dr.all(chain.positions == positions)):
+                prior = min(prior, moving_cap)  # the geometry moved: a short memory (as the interior term's)
         share = dr.opaque(mi.Float, 1.0 / (prior + edge_candidates))  # each fresh candidate's MIS weight
         chosen, total, scale = None, mi.Float(0.0), mi.Float(0.0)
         for _ in range(edge_candidates):
@@ -231,9 +226,9 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.n
             chosen = _pick(sampler.next_1d() * total < w, old, chosen)
         if chain is not None:
             # the chain's confidence starts at 0: the first step's target had no floor
-            chain = EdgeChain(cap=chain.cap, pair=chosen["pair"], along=chosen["along"], light=chosen["light"],
+            chain = EdgeChain(pair=chosen["pair"], along=chosen["along"], light=chosen["light"],
                               weight=dr.select(chosen["phat"] > 0, total / chosen["phat"], 0.0), positions=positions,
-                              confidence=min(prior + edge_candidates, chain.cap) if chain.scale > 0 else 0.0,
+                              confidence=min(prior + edge_candidates, chain_cap) if chain.scale > 0 else 0.0,
                               samples=n, pairs=len(pmf), scale=float(dr.sum(scale)[0]) / (n * edge_candidates))
             dr.eval(chain.pair, chain.along, chain.light, chain.weight, chain.positions)  # else the next step's kernel holds this one's
         weight = chosen["ratio"] * total * (film_w * film_h / n)
