@@ -797,7 +797,7 @@ def test_shape_interior_gradient_matches_finite_differences(tmp_path):
     r = ReSTIRSampler(scene, preset="b1")
     moved = lambda off: (base.view(-1, 3) + off).reshape(-1)  # noqa: E731
     off = torch.zeros(3, requires_grad=True)
-    with pytest.warns(UserWarning, match="stage v2"):
+    with pytest.warns(UserWarning, match="ReSTIR with shape parameters"):
         render(scene, {key: moved(off)}, spp=4, seed=3, sampler=r).sum().backward()
     h = 1e-2
     lp = float(render(scene, {key: moved(torch.tensor([0, 0, h]))}, spp=4, seed=3, sampler=r).sum())
@@ -904,7 +904,7 @@ def test_shape_gradient_with_boundary_terms_matches_direct_projective():
         return g.mean(0), g.std(0) / math.sqrt(n)
 
     ref, ref_se = grads(None)
-    with pytest.warns(UserWarning, match="stage v2"):
+    with pytest.warns(UserWarning, match="ReSTIR with shape parameters"):
         ours, se = grads(ReSTIRSampler(scene, candidates=4, burn_in=4))
     assert (ref.abs() > 4 * ref_se).all()  # every component is resolved
     assert ((ours - ref).abs() <= 4 * torch.sqrt(se**2 + ref_se**2)).all()

@@ -16,12 +16,13 @@ import pytest
 from torchir.samplers import ReSTIRSampler
 from torchir.samplers.restir import _PRESETS
 
-GEOMETRY_MESSAGE = (
-    "ReSTIR with shape parameters (stage v2): interior term with reuse (ray-following shading "
-    "points) + boundary terms without reuse (shadow edges sampled on the moving meshes under area "
-    "lights, the rest from direct_projective); the temporal support test uses the current "
-    "geometry (small bias, spec D7)"
-)
+def geometry_message(chained: bool | str) -> str:
+    edges = {True: "and kept across steps (edge chains), ", False: "afresh each step, ",
+             "auto": "afresh each step, or kept across steps (edge chains) on meshes with many edges, "}[chained]
+    return ("ReSTIR with shape parameters: interior term with reuse (ray-following shading points); "
+            "boundary terms: shadow edges sampled on the moving meshes under area lights " + edges
+            + "silhouettes without reuse, the rest from direct_projective; the temporal support test "
+            "uses the current geometry (small bias, spec D7)")
 
 
 @pytest.fixture(scope="module")
@@ -199,11 +200,18 @@ def test_check_gradients_warns_once_about_geometry(scene, names):
     scene._warned.discard("restir-geometry")
     with pytest.warns(UserWarning) as record:
         r.check_gradients(names)
-    assert [str(w.message) for w in record] == [GEOMETRY_MESSAGE]
+    assert [str(w.message) for w in record] == [geometry_message(chained="auto")]
     assert "restir-geometry" in scene._warned
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         r.check_gradients(names)  # once per scene and key
+    for preset, chains, chained in (("forward_only", True, False), ("b2", "auto", False), ("restir", True, True)):
+        scene._warned.discard("restir-geometry")  # the warning says whether edge samples are kept across steps
+        sampler = ReSTIRSampler(scene, preset=preset)
+        sampler.integrator.edge_temporal = chains
+        with pytest.warns(UserWarning) as record:
+            sampler.check_gradients(names)
+        assert [str(w.message) for w in record] == [geometry_message(chained=chained)]
         ReSTIRSampler(scene).check_gradients(names)
     scene._warned.discard("restir-geometry")
 

@@ -319,6 +319,41 @@ def test_temporal_edge_chains_stay_unbiased_on_moving_geometry_with_less_varianc
         _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, 16, 0, None, 1, 1, {}, 0.5)
 
 
+def test_auto_edge_strategy_chains_by_length_only_where_the_samples_cannot_cover_the_pairs():
+    """``edge_strategy``: fresh guided samples while the (edge, light) pairs are at most 4 per
+    sample, chains by length beyond; explicit settings win; no chains without temporal reuse or
+    in forward-only mode."""
+    from torchir.integrators.restir_di import EDGE_PAIRS_PER_SAMPLE, ReSTIRDirectIntegrator
+    from torchir.scenes import occluded_lights
+
+    def blocker(**options):
+        scene = mi.load_dict(occluded_lights.build(resolution=8, **options))
+        return scene, [shape for shape in scene.shapes() if shape.id() == "blocker"]
+
+    crown, crown_meshes = blocker(blocker="crown", rings=24)  # 6 * 24 * 23 = 3312 edges, 2 lights
+    box, box_meshes = blocker(blocker="box")
+    assert EDGE_PAIRS_PER_SAMPLE == 4.0 and len(crown.emitters()) == 2
+    integrator = ReSTIRDirectIntegrator()
+    assert (integrator.edge_temporal, integrator.edge_guiding) == ("auto", "auto")
+    assert integrator.edge_strategy(crown, crown_meshes, 1024) == (True, False)  # 6624 pairs > 4 x 1024
+    assert integrator.edge_strategy(crown, crown_meshes, 1656) == (False, True)  # exactly 4 per sample: guided
+    assert integrator.edge_strategy(crown, crown_meshes, 64 * 64) == (False, True)
+    assert integrator.edge_strategy(box, box_meshes, 1) == (True, False)  # 2 x 18 welded-box edges for one sample
+    assert integrator.edge_strategy(box, box_meshes, 16 * 16) == (False, True)
+    integrator.edge_temporal, integrator.edge_guiding = True, False
+    assert integrator.edge_strategy(crown, crown_meshes, 64 * 64) == (True, False)
+    integrator.edge_temporal, integrator.edge_guiding = False, True
+    assert integrator.edge_strategy(crown, crown_meshes, 1024) == (False, True)
+    for off in ("temporal", "forward_only"):
+        other = ReSTIRDirectIntegrator(**{off: off == "forward_only"})
+        assert other.edge_strategy(crown, crown_meshes, 1024) == (False, False)  # by length, no chains
+    for name, bad in (("edge_temporal", "yes"), ("edge_guiding", 1), ("edge_temporal", None)):
+        other = ReSTIRDirectIntegrator()
+        setattr(other, name, bad)
+        with pytest.raises(ValueError, match=name):
+            other.edge_strategy(crown, crown_meshes, 1024)
+
+
 def test_temporal_edge_chains_with_no_adjoint_stay_empty_and_exactly_zero():
     """Extremes: a zero adjoint gives no gradient, no NaN, and the chains never gain
     confidence (nothing was found, so no floor can be set); an adjoint switched on later

@@ -182,12 +182,20 @@ class ReSTIRSampler:
                     f"re-sampled, when a light moves): optimise it without sampler=, e.g. with the scene's own integrator"
                 )
         if any(is_geometry_key(name) for name in grad_names):
+            integrator = self.integrator
+            if not (integrator.temporal and not integrator.forward_only and integrator.edge_temporal):
+                edges = "afresh each step, "
+            elif integrator.edge_temporal == "auto":
+                edges = "afresh each step, or kept across steps (edge chains) on meshes with many edges, "
+            else:
+                edges = "and kept across steps (edge chains), "
             self.scene.warn_once(
                 "restir-geometry",
-                "ReSTIR with shape parameters (stage v2): interior term with reuse (ray-following shading "
-                "points) + boundary terms without reuse (shadow edges sampled on the moving meshes under area "
-                "lights, the rest from direct_projective); the temporal support test uses the current "
-                "geometry (small bias, spec D7)",
+                "ReSTIR with shape parameters: interior term with reuse (ray-following shading points); "
+                "boundary terms: shadow edges sampled on the moving meshes under area lights "
+                + edges
+                + "silhouettes without reuse, the rest from direct_projective; the temporal support test "
+                "uses the current geometry (small bias, spec D7)",
             )
 
     # ------------------------------------------------------------------ public state API
