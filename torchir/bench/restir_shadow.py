@@ -38,7 +38,7 @@ over the last quarter of its time is within ``--tolerance`` degrees of the truth
 alone is one draw of the jitter); the time it settled is when it entered that band for good.
 
 Usage:
-    python -m torchir.bench.restir_shadow --quick    # 32², 2 starts, 20 steps (< 1 min)
+    python -m torchir.bench.restir_shadow --quick    # 32², 2 starts, 20 steps (under 2 min with all eight methods)
     python -m torchir.bench.restir_shadow            # 64², starts +-20, +-30 degrees, 80 steps
     python -m torchir.bench.restir_shadow --blocker crown --rings 144   # 123 000 edges, few on the outline
     python -m torchir.bench.restir_shadow --blocker crown --optimizer sgd   # steps proportional to the gradient
