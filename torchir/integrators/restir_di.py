@@ -777,7 +777,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         samples they find, are best. Measured through Adam's average (the variance of its first
         moment, beta 0.9; ``occluded_lights``' crown, 64², the pose moving 0.5 degrees a step,
         96-400 steps): at 24 rings (6 600 pairs, 4 096 samples) guided without chains 2.4-3.5x
-        below guided chains and 7x below by length; at 144 rings (247 000 pairs) chains by
+        below guided chains and 7x below by length; at 48 rings (6.6 pairs a sample) chains by
+        length 3.4x below guided samples without chains; at 144 rings (247 000 pairs) chains by
         length 3.5x below by length alone and 7x below guided chains (the guide raised
         by-length's variance 3.5x). Chains also need temporal reuse and not ``forward_only``."""
         for name in ("edge_temporal", "edge_guiding"):
