@@ -789,7 +789,12 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         many = pairs > EDGE_PAIRS_PER_SAMPLE * samples
         chains = many if self.edge_temporal == "auto" else bool(self.edge_temporal)
         guided = (not many) if self.edge_guiding == "auto" else bool(self.edge_guiding)
-        return chains and self.temporal and not self.forward_only, guided
+        return chains and self.can_chain_edges(), guided
+
+    def can_chain_edges(self) -> bool:
+        """Whether shadow-edge samples may be kept across steps at all: with temporal reuse, not
+        in ``forward_only`` mode (``edge_strategy`` then decides where they are)."""
+        return self.temporal and not self.forward_only
 
     def boundary_integrator(self, secondary: bool = True, primary: bool = True) -> mi.Integrator:
         """Mitsuba's ``direct_projective`` restricted to its boundary terms (``sppc=0``; with

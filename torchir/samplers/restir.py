@@ -183,7 +183,7 @@ class ReSTIRSampler:
                 )
         if any(is_geometry_key(name) for name in grad_names):
             integrator = self.integrator
-            if not (integrator.temporal and not integrator.forward_only and integrator.edge_temporal):
+            if not (integrator.edge_temporal and integrator.can_chain_edges()):
                 edges = "afresh each step, "
             elif integrator.edge_temporal == "auto":
                 edges = "afresh each step, or kept across steps (edge chains) on meshes with many edges, "
