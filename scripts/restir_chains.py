@@ -8,6 +8,7 @@ runs with longer chains (burn-in passes, chain cap ``m_cap``). Errors are RMS ov
 
     python scripts/restir_chains.py many_lights            # 128², 256 steps, oracles 256 steps (about 15 min)
     python scripts/restir_chains.py ajar_painting --steps 64
+    python scripts/restir_chains.py ajar_painting --floor 0.00241 --steps 32 --chains 512:16384,2048:131072 --light-guide 0,0.5
 """
 from __future__ import annotations
 
@@ -30,6 +31,10 @@ def main(argv=None) -> dict[str, float]:
     p.add_argument("--chains", default=None,
                    help="burn_in:m_cap pairs to run, comma-separated (m_cap 0: the preset's; default: "
                         + ",".join(f"{b}:{m or 0}" for b, m in CHAINS) + ")")
+    p.add_argument("--light-guide", default="0",
+                   help="light_guide shares to run each chain with, comma-separated (0: off)")
+    p.add_argument("--floor", type=float, default=None,
+                   help="the floor, if known (skips the two oracles; e.g. 0.00241 ajar_painting, 0.00178 many_lights at 128²)")
     a = p.parse_args(argv)
 
     from torchir.bench import restir
@@ -46,15 +51,21 @@ def main(argv=None) -> dict[str, float]:
         return restir.error_beyond_reference(errors, problem.ref_relative_se)[0], time.perf_counter() - t0
 
     out = {}
-    for m in (256, 1024):
-        out[f"RIS {m}"] = error(ReSTIRSampler(problem.scene, preset="b2", candidates=m), a.oracle_steps)[0]
-    floor = restir.camera_floor(out["RIS 256"], 256, out["RIS 1024"], 1024)
+    if a.floor is None:
+        for m in (256, 1024):
+            out[f"RIS {m}"] = error(ReSTIRSampler(problem.scene, preset="b2", candidates=m), a.oracle_steps)[0]
+        floor = restir.camera_floor(out["RIS 256"], 256, out["RIS 1024"], 1024)
+    else:
+        floor = a.floor
     out["floor"] = floor
-    print(f"| run | relative error | x floor | seconds |\n|---|---|---|---|\n| floor (extrapolated) | {floor:.5f} | 1 | |", flush=True)
+    source = "extrapolated" if a.floor is None else "given"
+    print(f"| run | relative error | x floor | seconds |\n|---|---|---|---|\n| floor ({source}) | {floor:.5f} | 1 | |", flush=True)
     chains = CHAINS if a.chains is None else [tuple(int(v) for v in c.split(":")) for c in a.chains.split(",")]
-    for burn_in, m_cap in chains:
-        e, seconds = error(ReSTIRSampler(problem.scene, preset="persistent", burn_in=burn_in, m_cap=m_cap or None), a.steps)
-        name = f"persistent, burn_in={burn_in}, m_cap={m_cap or 'default'}"
+    shares = [float(v) for v in a.light_guide.split(",")]
+    for (burn_in, m_cap), share in ((c, s) for c in chains for s in shares):
+        e, seconds = error(ReSTIRSampler(problem.scene, preset="persistent", burn_in=burn_in, m_cap=m_cap or None,
+                                         light_guide=share), a.steps)
+        name = f"persistent, burn_in={burn_in}, m_cap={m_cap or 'default'}" + (f", light_guide={share:g}" if share else "")
         out[name] = e
         print(f"| {name} | {e:.5f} | {e / floor if floor > 0 else float('inf'):.2f} | {seconds:.0f} |", flush=True)
     return out

@@ -317,6 +317,10 @@ def test_restir_variants_can_be_run_alone():
     assert bench.sampler_options("ReSTIR (persistent)", alone)["m_cap"] is None  # the preset's own cap
     long = parse_args(["--restirs", "persistent", "--chain-cap", "16384"])
     assert bench.sampler_options("ReSTIR (persistent)", long)["m_cap"] == 16384 and "m_cap" not in bench.sampler_options("ReSTIR (shadowed)", long)
+    assert bench.sampler_options("ReSTIR (persistent)", alone)["light_guide"] == 0.0  # off unless asked
+    guided = parse_args(["--restirs", "persistent", "--light-guide", "0.5"])
+    assert bench.sampler_options("ReSTIR (persistent)", guided)["light_guide"] == 0.5
+    assert "light_guide" not in bench.sampler_options("ReSTIR (shadowed)", guided)
     spp_eq = {"direct": 2, "B.1": 2, "B.2": 2, "ReSTIR (persistent)": 1}
     runs = [_run(m, s, [0.3 / math.sqrt(s)] * 2, 0.1 * s) for m in BASELINES for s in (1, 2)]
     runs += [_run("ReSTIR (persistent)", 1, [0.05, 0.05], 0.15), _run(ORACLE, 1, [0.04, 0.04])]

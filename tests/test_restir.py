@@ -191,6 +191,23 @@ def test_persistent_chains_unbiased(oxalis, reference, lifetime):
     assert abs(ratio - 1) < bound
 
 
+def test_redrawn_lanes_continue_their_ris_over_the_burn_in_count(oxalis):
+    """A lane whose offset is redrawn starts a new chain at a new point; it continues that step's
+    RIS over ``burn_in x candidates`` more candidates, so no lane is ever left with one step's
+    candidates (without a burn-in, redrawn lanes are: M = candidates)."""
+    def m_after(burn_in: int) -> np.ndarray:
+        r = ReSTIRSampler(oxalis, preset="persistent", candidates=4, burn_in=burn_in, offset_lifetime=4.0, seed=3)
+        for s in range(3):
+            render(oxalis, {}, spp=1, seed=s, sampler=r)
+        prev = r.integrator.states[0].prev
+        return np.asarray(prev.M)[np.asarray(prev.valid)]
+
+    with_burn_in = m_after(8)
+    assert with_burn_in.min() >= 4 + 8 * 4  # one step's 4 and the burn-in's 32
+    without = m_after(0)
+    assert (without == 4).mean() > 0.1  # about a quarter of the lanes were redrawn in the last step
+
+
 @pytest.mark.parametrize("target, preset", [("shadowed", "restir"), ("unshadowed", "restir"), ("shadowed", "persistent")])
 def test_reuse_gradient_unbiased(oxalis, prb_gradient, target, preset):
     """12 independent chains (burn-in 4, then 4 steps each); z over chain means. The

@@ -132,6 +132,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--nn-backend", default="auto", choices=("auto", "kdtree", "grid", "screen"))
     p.add_argument("--chain-cap", type=int, default=None,
                    help="M cap of the persistent chains (default: the preset's, 64 x candidates; scripts/restir_chains.py measures longer ones)")
+    p.add_argument("--light-guide", type=float, default=0.0,
+                   help="light_guide of the persistent chains: the share of candidates drawn from each lane's learned guide (0: off)")
     p.add_argument("--grad-steps", type=int, default=None, help="gradient steps per method (default 32, quick 8)")
     p.add_argument("--cal-steps", type=int, default=None, help="timed steps per calibration probe (default 6, quick 2)")
     p.add_argument("--cal-rounds", type=int, default=None, help="calibration probes per method (default 3, quick 1)")
@@ -216,7 +218,8 @@ def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None
     if method == ORACLE_LOW:
         return {"preset": "b2", "candidates": a.oracle_low}
     if method == "ReSTIR (persistent)":
-        return {"preset": "persistent", "candidates": a.candidates, "burn_in": a.burn_in, "m_cap": a.chain_cap}
+        return {"preset": "persistent", "candidates": a.candidates, "burn_in": a.burn_in, "m_cap": a.chain_cap,
+                "light_guide": a.light_guide}
     if method in ALL_RESTIRS:
         target = "unshadowed" if "unshadowed" in method else "shadowed"
         return {"candidates": a.candidates, "burn_in": a.burn_in, "target": target, "nn_backend": a.nn_backend}

@@ -131,17 +131,26 @@ def eval_target(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool
 
 
 def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Sampler, active: mi.Bool,
-                     visibility: bool = True, with_inv_pc: bool = False):
+                     visibility: bool = True, with_inv_pc: bool = False, guide=None):
     """One light candidate (R15): emitter by ``sampling_weight``, then the emitter's own
     sampling. Returns ``(y, f, p̂, w)`` with ``w = p̂ / p_c`` (R4, R25); ``visibility=False``
     skips the shadow ray (the unshadowed target). ``with_inv_pc`` appends ``1 / p_c`` wherever
-    ``y`` is a valid sample, also where ``p̂ = 0`` (0 elsewhere)."""
+    ``y`` is a valid sample, also where ``p̂ = 0`` (0 elsewhere).
+    ``guide`` (``_light_guide.GuideDraws``): some candidates come from the lanes' learned
+    guides instead, and ``p_c`` is the mixture's density; the emitter's primary sample ``u``
+    is appended (what the guides learn from)."""
     active = mi.Bool(active)  # the &= below must not modify the caller's mask
     n = dr.width(active)
     u = sampler.next_2d(active)
     idx, sel_weight, u_x = scene.sample_emitter(u.x, active)
+    u_light = mi.Point2f(u_x, u.y)
+    if guide is not None:
+        taken, g_light, g_u = guide.draw(sampler, active)
+        idx, u_light = dr.select(taken, g_light, idx), dr.select(taken, g_u, u_light)
+        p_sel = scene.pdf_emitter(idx, taken)
+        sel_weight = dr.select(taken, dr.select(p_sel > 0, 1.0 / p_sel, 0.0), sel_weight)
     em = dr.gather(mi.EmitterPtr, scene.emitters_dr(), idx, active)
-    ds, weight = em.sample_direction(si, mi.Point2f(u_x, u.y), active)  # weight = Le / pdf_dir
+    ds, weight = em.sample_direction(si, u_light, active)  # weight = Le / pdf_dir
     active &= ds.pdf > 0
     wo = si.to_local(ds.d)
     fs = si.bsdf().eval(mi.BSDFContext(), si, wo, active)
@@ -149,6 +158,9 @@ def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.S
     f = weight * ds.pdf * fs * dr.select(ds.delta, 1.0, g)  # = Le fs g
     nee = weight * sel_weight * fs  # = f / p_c
     inv_pc = sel_weight / dr.select(active, ds.pdf * dr.select(ds.delta, 1.0, g), 1.0)
+    if guide is not None:  # p_c of the mixture
+        factor = guide.density_factor(scene, idx, u_light, ~ds.delta, active)
+        nee, inv_pc = nee / factor, inv_pc / factor
     sampled = active & dr.isfinite(inv_pc) & dr.isfinite(mi.luminance(nee))
     active = sampled & (mi.luminance(f) > 0)
     if visibility:
@@ -157,14 +169,17 @@ def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.S
     y.em, y.p, y.n, y.uv, y.delta = idx, ds.p, mi.Vector3f(ds.n), ds.uv, ds.delta
     f = dr.select(active, f, 0.0)
     out = (y, f, dr.select(active, mi.luminance(f), 0.0), dr.select(active, mi.luminance(nee), 0.0))
-    return (*out, dr.select(sampled, inv_pc, 0.0)) if with_inv_pc else out
+    if with_inv_pc:
+        out = (*out, dr.select(sampled, inv_pc, 0.0))
+    return (*out, u_light) if guide is not None else out
 
 
-def fresh_reservoirs(ray, pi, si, valid: mi.Bool, y, w_sum: mi.Float, phat: mi.Float, candidates: int,
+def fresh_reservoirs(ray, pi, si, valid: mi.Bool, y, w_sum: mi.Float, phat: mi.Float, candidates: int | mi.Float,
                      offset: mi.Point2f | None = None):
-    """The reservoirs of streaming RIS over ``candidates`` at the first hits ``(pi, si)`` of
-    camera rays ``ray``: the chosen sample ``y`` with ``W = w_sum / (M p̂(y))`` (R5), and the
-    shading point stored to be found and rebuilt (``offset``: its position in the pixel)."""
+    """The reservoirs of streaming RIS over ``candidates`` (a count, or one per lane) at the
+    first hits ``(pi, si)`` of camera rays ``ray``: the chosen sample ``y`` with
+    ``W = w_sum / (M p̂(y))`` (R5), and the shading point stored to be found and rebuilt
+    (``offset``: its position in the pixel)."""
     m0 = dr.select(valid, mi.Float(candidates), 0.0)
     r = dr.zeros(Reservoirs(), dr.width(valid))
     r.y, r.w_sum, r.M = y, w_sum, m0

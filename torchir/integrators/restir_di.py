@@ -43,7 +43,17 @@
        every step's offsets stay uniform and its estimate unbiased); 0 = a fresh offset every
        step; ``inf`` = until the sensor or the geometry changes. With ``temporal`` and without
        ``spatial`` a kept lane resamples with its own previous reservoir, at the same shading
-       point; a redrawn lane starts afresh. See ``preset="persistent"`` of ``ReSTIRSampler``.
+       point; a redrawn lane starts afresh, its first RIS running over ``burn_in x candidates``
+       more candidates (in the same pass; else such young lanes dominate the error: see
+       ``_pass``). See ``preset="persistent"`` of ``ReSTIRSampler``.
+     - 0
+   * - ``light_guide``
+     - float
+     - with lane chains (``offset_lifetime``, temporal reuse only): the share of each lane's
+       candidates drawn from a guide it learns at its kept shading point (two marginal
+       histograms over the primary sample of the light it sees lit; ``_light_guide``). The
+       rest are drawn as usual, and RIS weights use the mixture's density, so the estimate
+       stays unbiased. 0 = off.
      - 0
    * - ``temporal`` / ``spatial``
      - bool
@@ -126,7 +136,7 @@ from mitsuba.python.ad.integrators.common import RBIntegrator
 
 from .. import backend
 from ..scene import is_geometry_key
-from . import _knn, _shadow_edges, _silhouettes
+from . import _knn, _light_guide, _shadow_edges, _silhouettes
 from ._film import develop
 from ._light import (FORWARD_FLAGS, LightSample, Reservoirs, eval_target, fresh_reservoirs, rebuild_interaction,
                      sample_candidate)
@@ -152,6 +162,7 @@ _OPTIONS = {
     "multiview": "auto",
     "spp_chains": True,
     "offset_lifetime": 0.0,
+    "light_guide": 0.0,
 }
 MULTIVIEW = ("auto", "per_sensor", "carry_over")
 STORE = -1  # the state key of the one reservoir store of multiview="carry_over"
@@ -159,6 +170,10 @@ LOADED = ("loaded",)  # SensorState.geometry of reservoirs loaded from a state d
 
 
 CHAIN_CAP = 64  # default M cap of a lane's own chain, in candidates (m_cap: 2; see the m_cap row above)
+# lane chains with light guides burn in with two passes: this share of the burn-in's candidates
+# learns the guides (drawn as without them), the rest draws from them
+GUIDE_LEARNING_SHARE = 0.25
+GUIDE_LEARNING_PER_STEP = 4  # candidates a step's guides learn from (unrolled streams; longer ones: all)
 UNROLLED_CANDIDATES = 32  # more candidates: a symbolic loop (kernel size and compile time)
 
 
@@ -199,6 +214,7 @@ class SensorState:
     camera: tuple | None = None  # (sensor matrix, width, height, spp) of ``prev``
     lights: tuple | None = None  # EmitterWatch state when ``prev`` was made
     geometry: tuple | None = None  # GeometryWatch state when ``prev`` was made
+    guide: Any = None  # the lanes' light guides (_light_guide.LightGuide; light_guide > 0)
 
 
 @dataclass
@@ -221,6 +237,7 @@ class PassStats:
     camera: tuple | None = None  # the pass's (sensor matrix, width, height, spp)
     geometry: tuple | None = None  # the scene's geometry (GeometryWatch) during the pass
     zero: Any = None  # (LightSample y0, Float w0) per lane: see the module docstring
+    guide: Any = None  # the lanes' light guides after the pass (light_guide), or None
     timings: dict = field(default_factory=dict)
 
 
@@ -235,6 +252,7 @@ EDGE_PAIRS_PER_SAMPLE = 4.0  # above this many (edge, light) pairs per shadow-ed
 class ReSTIRDirectIntegrator(RBIntegrator):
     __doc__ = __doc__
     zero_remainder = True  # step() takes zero_remainder= (torchir's render sets it per step)
+    young_lane_burn_in = True  # a redrawn lane continues its first RIS over burn_in x candidates (see _pass; False: as before, for measurements)
     same_point_visibility = True  # a lane's own chain reuses its sample's visibility (see _combine; False: traced, for tests)
     shadow_edge_sampling = True  # shadow edges sampled on the moving meshes (see _boundary_backward; False: direct_projective's)
     edge_guiding: bool | str = "auto"  # (edge, light) pairs drawn by what earlier steps found (_shadow_edges; False: by length; auto: see edge_strategy)
@@ -287,6 +305,9 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if not (self.offset_lifetime == 0.0 or self.offset_lifetime >= 1.0):  # NaN fails both
             raise ValueError(f"offset_lifetime must be None or 0 (a fresh camera offset every step) or >= 1 "
                              f"steps (inf: kept until the sensor moves), got {cfg['offset_lifetime']!r}")
+        self.light_guide = float(cfg["light_guide"])
+        if not 0.0 <= self.light_guide < 1.0:  # NaN fails too
+            raise ValueError(f"light_guide must be a share of candidates in [0, 1) (0: off), got {cfg['light_guide']!r}")
         self._neighbour_search = _knn.NeighbourSearch(self.nn_backend)
         self._emitter_watch = EmitterWatch()
         self.freeze = bool(cfg["freeze"])
@@ -382,11 +403,15 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             # its passes' candidates (the same reservoirs in distribution, one camera ray and one
             # pass instead of burn_in; measured at 128², burn-in 32: 2.0 s -> 0.49 s on many_lights)
             one_pass = self.lane_chains and not carry
-            extra = {"candidates": self.burn_in * self.candidates} if one_pass else {}
-            for i in range(1 if one_pass else self.burn_in):
+            passes = [1] * self.burn_in
+            if one_pass:  # with light guides, two: the first learns them, the second draws from them
+                learn = max(1, round(self.burn_in * GUIDE_LEARNING_SHARE)) if self.light_guide > 0 else self.burn_in
+                passes = [learn, self.burn_in - learn] if self.burn_in > learn else [self.burn_in]
+            for i, count in enumerate(passes):
+                extra = {"candidates": count * self.candidates} if one_pass else {}
                 burn_seed = int(mi.sample_tea_32(seed, 0x5EED0000 + i)[0])
                 _, st.prev, burn = self.sample_paths(scene, sensor, burn_seed, spp, st.prev, st, st.camera, **extra)
-                st.camera, st.geometry = burn.camera, burn.geometry
+                st.camera, st.geometry, st.guide = burn.camera, burn.geometry, burn.guide
         t_burn = _tic() - t0
         lights = self._emitter_watch(scene) if self.temporal else None  # only temporal reuse needs it
         prev, prev_camera = st.prev, st.camera
@@ -397,7 +422,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if self.temporal and carry:  # Alg. A8: one store for all views
             st.prev, st.camera, st.lights = carry_over(scene, sensor, out, prev), None, lights
         elif self.temporal:
-            st.prev, st.camera, st.lights, st.geometry = out, stats.camera, lights, stats.geometry
+            st.prev, st.camera, st.lights, st.geometry, st.guide = out, stats.camera, lights, stats.geometry, stats.guide
         st.steps += 1
         self.timings = {"burn_in": t_burn, **stats.timings}
         self._last_pass = (out, stats)  # statistics computed on demand (host syncs)
@@ -452,11 +477,18 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         stats = PassStats(camera=camera, k=k if source != "none" else 0, geometry=geometry)
         # the store's points bucketed by their pixel in this film (traced: see bucket_by_pixel)
         buckets = _knn.bucket_by_pixel(*project(sensor_obj, prev), w * h) if reproject else None
-        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout, bool(zero_remainder), buckets, keep_offsets, candidates, m_cap)
+        guide = None
+        if self.light_guide > 0 and self.lane_chains:  # the lanes' guides, if they are this film's and lights'
+            n, lights = w * h * spp, _light_guide.guided_lights(scene)
+            guide = st.guide
+            if guide is None or dr.width(guide.light) != n or dr.width(guide.mass_l) != n * lights:
+                guide = _light_guide.empty_guide(n, lights)
+        args = (scene, sensor, spp, prev, float(st.radius), source, k, layout, bool(zero_remainder), buckets, keep_offsets,
+                candidates, m_cap, guide)
         t0 = _tic()
         if freeze:  # traced once per configuration, then replayed (no Python tracing, no codegen)
             try:
-                ray_weight, image, r, n_ok, zero = self._frozen_pass(dr.opaque(mi.UInt32, seed), *args, None)
+                ray_weight, image, r, n_ok, zero, guide = self._frozen_pass(dr.opaque(mi.UInt32, seed), *args, None)
                 dr.eval(image, r, zero if zero is not None else ())
             except Exception as error:  # noqa: BLE001 - fall back, loudly, as torchir's frozen renders do
                 self.freeze = freeze = False
@@ -469,9 +501,9 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             timings: dict[str, float] = {}
             # an opaque seed, as the frozen pass gets: a literal one compiles new kernels every
             # step wherever the seed enters a kernel (the offsets' redraw hash did: 2 s a step)
-            ray_weight, image, r, n_ok, zero = self._pass(dr.opaque(mi.UInt32, seed), *args, timings)
+            ray_weight, image, r, n_ok, zero, guide = self._pass(dr.opaque(mi.UInt32, seed), *args, timings)
             stats.timings = timings
-        stats.zero = zero
+        stats.zero, stats.guide = zero, guide
         if source != "none":
             stats.neighbor_count = n_ok
         self.last_pass_frozen = freeze
@@ -497,13 +529,13 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         return True
 
     def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, buckets, keep_offsets,
-              candidates, m_cap, timings):
+              candidates, m_cap, guide, timings):
         """The resampling pass on Dr.Jit values only (so it can be frozen): camera rays,
         streaming RIS, the neighbour search (``screen`` when frozen) and the combination.
         ``keep_offsets``: ``prev`` has this pass's lanes; each lane keeps its camera offset, so
         its shading point, unless redrawn (probability 1 / ``offset_lifetime``), and with
         temporal reuse alone combines with its own previous reservoir (a redrawn lane starts
-        afresh).
+        afresh). ``guide``: the lanes' light guides (``light_guide``; None: none), learned on.
         ``timings`` (a dict, or None when frozen): seconds per stage, measured with syncs."""
 
         def tic(name=None, since=None):
@@ -537,12 +569,38 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         valid = si.is_valid()
         le_vis = si.emitter(scene).eval(si, valid)
 
+        draws = None
+        if guide is not None:  # a lane's guide is for its shading point: a redrawn offset forgets it
+            guide = (_light_guide.forget(guide, keep) if keep_offsets
+                     else _light_guide.empty_guide(n, _light_guide.guided_lights(scene)))
+            draws = _light_guide.GuideDraws(guide, self.light_guide)
         # Streaming RIS over light candidates (Alg. A1; paper Eq. 4-6)
-        y, f_sel, phat_sel, w_sum, zero = self._streaming_ris(scene, si, sampler, valid, n, zero_remainder, candidates)
+        # a burn-in's guided pass (kept offsets, its own count) draws from what its first pass
+        # learned, without learning on (the scatters would triple its cost)
+        learn = not keep_offsets or candidates == self.candidates
+        y, f_sel, phat_sel, w_sum, zero = self._streaming_ris(scene, si, sampler, valid, n, zero_remainder, candidates,
+                                                              guide=draws, learn=learn)
+        m_fresh = mi.Float(candidates)
+        if keep_offsets and self.lane_chains and self.burn_in > 0 and self.young_lane_burn_in and candidates == self.candidates:
+            # A redrawn lane starts a new chain at a new point: with this step's candidates only, its
+            # estimate is far noisier than its kept neighbours' for as long as its chain is young
+            # (measured on ajar_painting, 128², burn-in 512: such lanes, 1 / offset_lifetime of
+            # them a step, raised the gradient error from 0.0072 to 0.0098 within 32 steps). So
+            # it continues this step's RIS over the burn-in's count of candidates, in the same
+            # kernel (the loop runs only for those lanes). Same point, same candidate density:
+            # plain RIS over more candidates. (A burn-in pass has that many of its own.)
+            young = valid & ~keep
+            extra = self.burn_in * self.candidates
+            y2, f2, phat2, w_sum2, _ = self._streaming_ris(scene, si, sampler, young, n, False, extra, unroll=False,
+                                                           guide=draws)
+            take = young & (sampler.next_1d(young) * (w_sum + w_sum2) < w_sum2)
+            y, f_sel, phat_sel = dr.select(take, y2, y), dr.select(take, f2, f_sel), dr.select(take, phat2, phat_sel)
+            w_sum = w_sum + dr.select(young, w_sum2, 0.0)
+            m_fresh = dr.select(young, mi.Float(candidates + extra), m_fresh)
         if not self.shadowed:  # one shadow ray for the chosen candidate; W = 0 when occluded
             seen = _visible(scene, si, y, valid & (phat_sel > 0))
             w_sum, f_sel = dr.select(seen, w_sum, 0.0), dr.select(seen, f_sel, 0.0)
-        r = fresh_reservoirs(ray, pi, si, valid, y, w_sum, phat_sel, candidates, offset)
+        r = fresh_reservoirs(ray, pi, si, valid, y, w_sum, phat_sel, m_fresh, offset)
         dr.eval(r, f_sel, phat_sel, le_vis, ray_weight)
         t1 = tic("ris", t0)
 
@@ -581,46 +639,59 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             t1 = tic("combine", t2)
         contrib = ray_weight * (le_vis + f_sel * r.W)  # (R16)
         image = develop(contrib, spp, h, w)
-        dr.eval(image, zero if zero is not None else ())
+        guide = None if draws is None else draws.learned
+        dr.eval(image, zero if zero is not None else (), guide if guide is not None else ())
         tic("develop", t1)
-        return ray_weight, image, r, n_ok, zero
+        return ray_weight, image, r, n_ok, zero, guide
 
     def _streaming_ris(self, scene, si, sampler, valid, n: int, zero_remainder: bool, candidates: int,
-                       unroll: bool | None = None):
+                       unroll: bool | None = None, guide: _light_guide.GuideDraws | None = None, learn: bool = True):
         """``(y, f, p̂, w_sum, (y0, w0))`` of streaming RIS over ``candidates`` light candidates
         (Alg. A1), with ``y0`` the first candidate whose ``p̂`` is 0 and ``w0 = n0 / (M p_c(y0))``
         (0 where none, or where ``y0`` is occluded): the gradient's ``p̂ = 0`` remainder (None
-        without ``zero_remainder``).
+        without ``zero_remainder``). ``guide``: candidates partly from the lanes' light guides,
+        which learn from them unless not ``learn`` (``guide.finish`` is called): from all of a
+        symbolic loop's, from the first ``GUIDE_LEARNING_PER_STEP`` of an unrolled one (the
+        learning's scatters cost more than the draws: 3x a usual candidate in a loop, against
+        1.3x without learning).
         Up to ``UNROLLED_CANDIDATES`` the loop is unrolled into the kernel (``unroll`` forces
         either way); beyond, a symbolic loop keeps the kernel small (1024 unrolled candidates
         took minutes to compile)."""
         y, y0 = dr.zeros(LightSample(), n), dr.zeros(LightSample(), n)
         f_sel, phat_sel = dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n)
         w_sum, inv_pc0, n0 = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
+        # continues what an earlier stream of this pass learned (its light)
+        light_of_lane = mi.UInt32(guide.learned.light) if guide is not None else mi.UInt32(_light_guide.NO_LIGHT)
 
-        def candidate(y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0):
-            y_m, f_m, phat_m, w_m, inv_pc = sample_candidate(scene, si, sampler, valid, visibility=self.shadowed,
-                                                             with_inv_pc=True)
+        def candidate(y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0, light_of_lane, learn_here=True):
+            y_m, f_m, phat_m, w_m, inv_pc, *u = sample_candidate(scene, si, sampler, valid, visibility=self.shadowed,
+                                                                 with_inv_pc=True, guide=guide)
+            if guide is not None and learn and learn_here:
+                light_of_lane = guide.learn(light_of_lane, y_m.em, u[0], w_m, ~y_m.delta, valid)
             w_sum = w_sum + w_m
             take = valid & (sampler.next_1d(valid) * w_sum < w_m)  # no division (A1)
             zero = valid & (inv_pc > 0) & (phat_m == 0) if zero_remainder else mi.Bool(False)
             first = zero & (n0 == 0)
             return (dr.select(take, y_m, y), dr.select(take, f_m, f_sel), dr.select(take, phat_m, phat_sel), w_sum,
-                    dr.select(first, y_m, y0), dr.select(first, inv_pc, inv_pc0), dr.select(zero, n0 + 1.0, n0))
+                    dr.select(first, y_m, y0), dr.select(first, inv_pc, inv_pc0), dr.select(zero, n0 + 1.0, n0),
+                    light_of_lane)
 
-        state = (y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0)
+        state = (y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0, light_of_lane)
         if (candidates <= UNROLLED_CANDIDATES) if unroll is None else unroll:
-            for _ in range(candidates):
-                state = candidate(*state)
+            for i in range(candidates):  # a step's guides learn from a few (their scatters cost)
+                state = candidate(*state, learn_here=i < GUIDE_LEARNING_PER_STEP)
         else:
             def body(i, sampler_, *rest):
                 return (i + 1, sampler_, *candidate(*rest))
 
+            count = dr.select(valid, candidates, 0)  # lanes without a shading point, or not asked for, exit at once
             _, _, *state = dr.while_loop(
-                (dr.zeros(mi.UInt32, n), sampler, *state), lambda i, *rest: i < candidates, body,
-                labels=("i", "sampler", "y", "f", "phat", "w_sum", "y0", "inv_pc0", "n0"),
+                (dr.zeros(mi.UInt32, n), sampler, *state), lambda i, *rest: i < count, body,
+                labels=("i", "sampler", "y", "f", "phat", "w_sum", "y0", "inv_pc0", "n0", "light"),
             )
-        y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0 = state
+        y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0, light_of_lane = state
+        if guide is not None:
+            guide.finish(light_of_lane)
         if not zero_remainder:
             return y, f_sel, phat_sel, w_sum, None
         w0 = n0 * inv_pc0 / candidates
@@ -824,6 +895,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                 "camera": st.camera,
                 "lights": st.lights,
                 "reservoirs": None if st.prev is None else _struct_to_numpy(st.prev),
+                "guide": None if st.guide is None else {k: np.array(getattr(st.guide, k), copy=True)
+                                                        for k in _light_guide.LightGuide.DRJIT_STRUCT},
             }
         return out
 
@@ -841,6 +914,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                 camera=None if camera is None else (tuple(camera[0]), *(int(v) for v in camera[1:])),
                 lights=as_tuples(d.get("lights")),  # absent: the first step does not reuse
                 geometry=LOADED,
+                guide=_guide_from_numpy(d.get("guide")),  # absent (older checkpoints): relearned
             )
 
     def to_string(self) -> str:
@@ -1016,6 +1090,13 @@ def _struct_from_numpy(struct_type, data: dict[str, np.ndarray]):
         _set(s, path, value)
     dr.eval(s)
     return s
+
+
+def _guide_from_numpy(data: dict[str, np.ndarray] | None):
+    if data is None:
+        return None
+    types = _light_guide.LightGuide.DRJIT_STRUCT
+    return _light_guide.LightGuide(*(types[k](np.ascontiguousarray(data[k])) for k in types))
 
 
 def _differentiated_meshes(scene: mi.Scene, params: Any) -> list:

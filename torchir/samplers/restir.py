@@ -89,6 +89,9 @@ class ReSTIRSampler:
             but the points a step samples persist, so texels narrower than the pixel spacing
             may get no gradient for that long. With temporal reuse alone, a kept sample
             resamples with its own previous reservoir, at the same shading point.
+        light_guide: with kept offsets and temporal reuse alone (``preset="persistent"``), the
+            share of each lane's light candidates drawn from what it learned of where its light
+            comes from (0: off); unbiased (RIS weighs by the mixture's density).
 
     Example:
         >>> scene = torchir.Scene.builtin("oxalis_lite", resolution=32)
@@ -118,6 +121,7 @@ class ReSTIRSampler:
         multiview: str = "auto",
         spp_chains: bool = True,
         offset_lifetime: float | None = None,
+        light_guide: float = 0.0,
     ) -> None:
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a torchir.Scene, got {type(scene).__name__}")
@@ -158,6 +162,7 @@ class ReSTIRSampler:
             multiview=multiview,
             spp_chains=spp_chains,
             offset_lifetime=offset_lifetime,
+            light_guide=light_guide,
         )
 
     # ------------------------------------------------------------------ used by render()
