@@ -17,11 +17,9 @@ RES = 16  # every render test uses 16x16 so the kernels compile once
 # own reordering (by number of tests per file) is switched off for this in pytest_configure.
 LONGEST_FILES_FIRST = (
     "test_restir.py", "test_training_ddp.py", "test_restir_integrator.py", "test_extremes.py",
-    "test_bench_restir.py", "test_shadow_edge_samples.py", "test_silhouettes.py", "test_photo_to_answer.py",
-    "test_functions_pixels.py", "test_training.py", "test_training_techniques.py", "test_bench_restir_shadow.py",
-    "test_scenes_restir.py", "test_primary_forms.py", "test_shape_gradients.py",
-)  # test_shadow_edge_samples.py (~100 s in CI), test_silhouettes.py (~70 s) and test_shape_gradients.py (~60 s) had
-# been left to the end (unlisted), where the long statistical runs kept one worker busy after the other was done
+    "test_bench_restir.py", "test_photo_to_answer.py", "test_functions_pixels.py", "test_training.py",
+    "test_training_techniques.py", "test_bench_restir_shadow.py", "test_scenes_restir.py", "test_primary_forms.py",
+)
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -167,6 +167,14 @@ def test_light_guide_share_is_checked(ajar, bad):
         ReSTIRSampler(ajar, preset="persistent", light_guide=bad)
 
 
+@pytest.mark.parametrize("preset", ["restir", "b2"])
+def test_light_guide_needs_lane_chains(ajar, preset):
+    """Elsewhere a lane's shading point moves every step: a guide would do nothing, so it is refused."""
+    with pytest.raises(ValueError, match="light_guide needs lane chains"):
+        ReSTIRSampler(ajar, preset=preset, light_guide=0.5)
+    ReSTIRSampler(ajar, preset=preset, light_guide=0.0)  # off: fine
+
+
 def test_chains_with_a_light_guide_stay_unbiased(ajar):
     """Persistent chains (a quarter of the offsets redrawn a step, so lanes forget and relearn)
     drawing half their candidates from their guides: 12 chains' image means match prb's

@@ -172,7 +172,7 @@ def test_defaults_and_initial_state():
     assert got == {"candidates": 16, "neighbors": 8, "radius": 0.0, "normal_threshold": 0.9, "m_cap": 32.0,
                    "temporal": True, "spatial": True, "burn_in": 32, "grad_paths": "shared", "forward_only": False,
                    "nn_backend": "auto", "target": "shadowed", "freeze": True, "multiview": "auto", "spp_chains": True,
-                   "offset_lifetime": 0.0}
+                   "offset_lifetime": 0.0, "light_guide": 0.0}
     assert type(i.m_cap) is float and type(i.radius) is float and type(i.normal_threshold) is float
     assert i.states == {} and i.last == {} and i.timings == {} and i.stats == {}
     assert i.last_pass_frozen is False and i._frozen_pass is None and i._last_pass is None
@@ -591,7 +591,8 @@ def test_state_dict_round_trip(point):
         a.step(point, 0, s, 1)
     state = a.state_dict()
     d = state[0]
-    assert set(d) == {"radius", "window", "steps", "signature", "camera", "lights", "reservoirs"}
+    assert set(d) == {"radius", "window", "steps", "signature", "camera", "lights", "reservoirs", "guide"}
+    assert d["guide"] is None  # no light guide: nothing to keep
     assert d["steps"] == 2 and d["camera"] == a.states[0].camera and d["lights"] == a.states[0].lights
     res = d["reservoirs"]
     assert set(res) == {"y.em", "y.p", "y.n", "y.uv", "y.delta", "W", "M", "w_sum", "shape", "prim", "prim_uv",
@@ -1204,7 +1205,8 @@ def test_offsets_are_redrawn_at_the_lifetime_rate_whatever_their_rays_hit(point)
     for s in range(3):
         j.step(point, 0, s, 2)
     valid = _np(j.states[0].prev.valid) > 0
-    assert (_np(j.states[0].prev.M)[valid] == 2.0).all()  # every lane started afresh
+    # every lane started afresh: one step's 2 candidates and the burn-in's count (2 x 2) more
+    assert (_np(j.states[0].prev.M)[valid] == 2.0 + 2 * 2.0).all()
 
 
 def test_offsets_are_fresh_after_a_geometry_edit_and_for_older_checkpoints(point):

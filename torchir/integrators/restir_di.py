@@ -308,6 +308,9 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.light_guide = float(cfg["light_guide"])
         if not 0.0 <= self.light_guide < 1.0:  # NaN fails too
             raise ValueError(f"light_guide must be a share of candidates in [0, 1) (0: off), got {cfg['light_guide']!r}")
+        if self.light_guide > 0 and not self.lane_chains:  # a guide is learned at a kept shading point
+            raise ValueError("light_guide needs lane chains: kept camera offsets and temporal reuse alone "
+                             "(ReSTIRSampler(scene, preset='persistent', light_guide=...))")
         self._neighbour_search = _knn.NeighbourSearch(self.nn_backend)
         self._emitter_watch = EmitterWatch()
         self.freeze = bool(cfg["freeze"])
