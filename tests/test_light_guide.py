@@ -97,7 +97,8 @@ def test_draws_follow_the_density_the_weights_use(ajar, guide_module):
         sd = np.sqrt(len(axis) * p * (1 - p))
         assert np.all(np.abs(counts - len(axis) * p) <= 5 * sd), (counts, len(axis) * p)
     has_u = mi.Bool(light != fill)
-    factor = np.asarray(draws.density_factor(scene, mi.UInt32(light), u, has_u, mi.Bool(taken)))
+    sel_weight = 1.0 / scene.pdf_emitter(mi.UInt32(light))
+    factor = np.asarray(draws.density_factor(mi.UInt32(light), u, has_u, sel_weight, mi.Bool(taken)))
     bx = np.minimum((np.asarray(u.x) * bins).astype(int), bins - 1)
     by = np.minimum((np.asarray(u.y) * bins).astype(int), bins - 1)
     p_sel = np.asarray(scene.pdf_emitter(mi.UInt32(light)))
@@ -105,7 +106,7 @@ def test_draws_follow_the_density_the_weights_use(ajar, guide_module):
     expected = 0.001 + 0.999 * density(ml)[light] / 2 * h / p_sel
     np.testing.assert_allclose(factor[taken], expected[taken], rtol=1e-4)
     empty = gm.GuideDraws(gm.empty_guide(n, gm.guided_lights(scene)), 0.5)  # nothing learned: the usual draws
-    assert np.all(np.asarray(empty.density_factor(scene, mi.UInt32(light), u, has_u, mi.Bool(True))) == 1.0)
+    assert np.all(np.asarray(empty.density_factor(mi.UInt32(light), u, has_u, sel_weight, mi.Bool(True))) == 1.0)
 
 
 def test_learned_guide_keeps_ris_unbiased_and_cuts_its_variance_behind_the_slit(ajar, guide_module):

@@ -159,7 +159,7 @@ def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.S
     nee = weight * sel_weight * fs  # = f / p_c
     inv_pc = sel_weight / dr.select(active, ds.pdf * dr.select(ds.delta, 1.0, g), 1.0)
     if guide is not None:  # p_c of the mixture
-        factor = guide.density_factor(scene, idx, u_light, ~ds.delta, active)
+        factor = guide.density_factor(idx, u_light, ~ds.delta, sel_weight, active)
         nee, inv_pc = nee / factor, inv_pc / factor
     sampled = active & dr.isfinite(inv_pc) & dr.isfinite(mi.luminance(nee))
     active = sampled & (mi.luminance(f) > 0)

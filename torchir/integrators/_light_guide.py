@@ -89,7 +89,8 @@ class _Histograms:
         self.cdf = dr.block_prefix_sum(mass + prior, bins, exclusive=False)
         self.total = total * (1.0 + GUIDE_PRIOR)
 
-    def _mass(self, b: mi.UInt32, active: mi.Bool) -> mi.Float:
+    def _mass(self, b: mi.UInt32, active: mi.Bool) -> tuple[mi.Float, mi.Float]:
+        """``(mass of bin b, running sum below it)``."""
         hi = dr.gather(mi.Float, self.cdf, self.base + b, active)
         lo = dr.select(b > 0, dr.gather(mi.Float, self.cdf, self.base + b - 1, active & (b > 0)), 0.0)
         return hi - lo, lo
@@ -147,16 +148,16 @@ class GuideDraws:
         if self.h_l is None:
             light = self.light
         else:  # pick rescaled: the emitter and u get independent uniforms
-            b, frac = self.h_l.draw_bin(pick / self.share, taken)
-            light = b
+            light, _ = self.h_l.draw_bin(pick / self.share, taken)
         on_light = taken & self.on_u & (light == self.light)
         u = mi.Point2f(self._u(self.h_x, xi.x, on_light), self._u(self.h_y, xi.y, on_light))
         return taken, light, dr.select(on_light, u, xi)
 
-    def density_factor(self, scene: mi.Scene, light: mi.UInt32, u: mi.Point2f, has_u: mi.Bool,
+    def density_factor(self, light: mi.UInt32, u: mi.Point2f, has_u: mi.Bool, sel_weight: mi.Float,
                        active: mi.Bool) -> mi.Float:
         """``q / p_c`` of candidates on emitter ``light`` at primary sample ``u`` (module
-        docstring; ``has_u`` False for delta lights, whose point ``u`` does not move); 1 where
+        docstring; ``has_u`` False for delta lights, whose point ``u`` does not move;
+        ``sel_weight = 1 / p_sel(light)``, as the candidate's sampling already has it); 1 where
         the lane draws nothing from its guide."""
         active = active & self.on
         if self.h_l is None:
@@ -166,8 +167,7 @@ class GuideDraws:
         on_light = active & has_u & self.on_u & (light == self.light)
         h_u = dr.select(on_light, GUIDE_BINS * self.h_x.probability(_bin(u.x), on_light)
                         * GUIDE_BINS * self.h_y.probability(_bin(u.y), on_light), 1.0)
-        p_sel = scene.pdf_emitter(light, active)
-        guided = dr.select(active & (p_sel > 0), p_l * h_u / dr.select(p_sel > 0, p_sel, 1.0), 0.0)
+        guided = dr.select(active, p_l * h_u * sel_weight, 0.0)
         return dr.select(self.on, (1.0 - self.share) + self.share * guided, 1.0)
 
     def learn(self, light_of_lane: mi.UInt32, light: mi.UInt32, u: mi.Point2f, w: mi.Float, has_u: mi.Bool,

@@ -481,10 +481,13 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         # the store's points bucketed by their pixel in this film (traced: see bucket_by_pixel)
         buckets = _knn.bucket_by_pixel(*project(sensor_obj, prev), w * h) if reproject else None
         guide = None
-        if self.light_guide > 0 and self.lane_chains:  # the lanes' guides, if they are this film's and lights'
+        if self.light_guide > 0 and self.lane_chains:
+            # the lanes' guides are for their kept shading points: fresh ones where the lanes
+            # are new (no kept offsets) or the guides are another film's or emitter count's
             n, lights = w * h * spp, _light_guide.guided_lights(scene)
             guide = st.guide
-            if guide is None or dr.width(guide.light) != n or dr.width(guide.mass_l) != n * lights:
+            if (not keep_offsets or guide is None or dr.width(guide.light) != n
+                    or dr.width(guide.mass_l) != n * lights):
                 guide = _light_guide.empty_guide(n, lights)
         args = (scene, sensor, spp, prev, float(st.radius), source, k, layout, bool(zero_remainder), buckets, keep_offsets,
                 candidates, m_cap, guide)
@@ -574,9 +577,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
 
         draws = None
         if guide is not None:  # a lane's guide is for its shading point: a redrawn offset forgets it
-            guide = (_light_guide.forget(guide, keep) if keep_offsets
-                     else _light_guide.empty_guide(n, _light_guide.guided_lights(scene)))
-            draws = _light_guide.GuideDraws(guide, self.light_guide)
+            draws = _light_guide.GuideDraws(_light_guide.forget(guide, keep) if keep_offsets else guide, self.light_guide)
         # Streaming RIS over light candidates (Alg. A1; paper Eq. 4-6)
         # a burn-in's guided pass (kept offsets, its own count) draws from what its first pass
         # learned, without learning on (the scatters would triple its cost)
@@ -898,8 +899,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                 "camera": st.camera,
                 "lights": st.lights,
                 "reservoirs": None if st.prev is None else _struct_to_numpy(st.prev),
-                "guide": None if st.guide is None else {k: np.array(getattr(st.guide, k), copy=True)
-                                                        for k in _light_guide.LightGuide.DRJIT_STRUCT},
+                "guide": None if st.guide is None else _struct_to_numpy(st.guide),
             }
         return out
 
@@ -917,7 +917,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                 camera=None if camera is None else (tuple(camera[0]), *(int(v) for v in camera[1:])),
                 lights=as_tuples(d.get("lights")),  # absent: the first step does not reuse
                 geometry=LOADED,
-                guide=_guide_from_numpy(d.get("guide")),  # absent (older checkpoints): relearned
+                # absent (older checkpoints): relearned
+                guide=None if d.get("guide") is None else _struct_from_numpy(_light_guide.LightGuide, d["guide"]),
             )
 
     def to_string(self) -> str:
@@ -1093,13 +1094,6 @@ def _struct_from_numpy(struct_type, data: dict[str, np.ndarray]):
         _set(s, path, value)
     dr.eval(s)
     return s
-
-
-def _guide_from_numpy(data: dict[str, np.ndarray] | None):
-    if data is None:
-        return None
-    types = _light_guide.LightGuide.DRJIT_STRUCT
-    return _light_guide.LightGuide(*(types[k](np.ascontiguousarray(data[k])) for k in types))
 
 
 def _differentiated_meshes(scene: mi.Scene, params: Any) -> list:
