@@ -9,6 +9,7 @@ runs with longer chains (burn-in passes, chain cap ``m_cap``). Errors are RMS ov
     python scripts/restir_chains.py many_lights            # 128², 256 steps, oracles 256 steps (about 15 min)
     python scripts/restir_chains.py ajar_painting --steps 64
     python scripts/restir_chains.py ajar_painting --floor 0.00241 --steps 32 --chains 512:16384,2048:131072 --light-guide 0,0.5
+    python scripts/restir_chains.py ajar_painting --floor 0.00241 --steps 32 --chains 8192:131072:4 --light-guide 0.5
 """
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ def main(argv=None) -> dict[str, float]:
                    help="steps of each floor oracle (as the bench's; 32 put many_lights' floor 24%% higher)")
     p.add_argument("--ref-spp", type=int, default=16384)
     p.add_argument("--chains", default=None,
-                   help="burn_in:m_cap pairs to run, comma-separated (m_cap 0: the preset's; default: "
+                   help="burn_in:m_cap pairs to run, comma-separated (m_cap 0: the preset's), each optionally "
+                        ":candidates a step (default 16), e.g. 8192:131072:4; default: "
                         + ",".join(f"{b}:{m or 0}" for b, m in CHAINS) + ")")
     p.add_argument("--light-guide", default="0",
                    help="light_guide shares to run each chain with, comma-separated (0: off)")
@@ -61,11 +63,15 @@ def main(argv=None) -> dict[str, float]:
     source = "extrapolated" if a.floor is None else "given"
     print(f"| run | relative error | x floor | seconds |\n|---|---|---|---|\n| floor ({source}) | {floor:.5f} | 1 | |", flush=True)
     chains = CHAINS if a.chains is None else [tuple(int(v) for v in c.split(":")) for c in a.chains.split(",")]
+    if any(len(c) not in (2, 3) for c in chains):
+        p.error("--chains takes burn_in:m_cap or burn_in:m_cap:candidates, comma-separated")
     shares = [float(v) for v in a.light_guide.split(",")]
-    for (burn_in, m_cap), share in ((c, s) for c in chains for s in shares):
-        e, seconds = error(ReSTIRSampler(problem.scene, preset="persistent", burn_in=burn_in, m_cap=m_cap or None,
-                                         light_guide=share), a.steps)
-        name = f"persistent, burn_in={burn_in}, m_cap={m_cap or 'default'}" + (f", light_guide={share:g}" if share else "")
+    for (burn_in, m_cap, *per_step), share in ((c, s) for c in chains for s in shares):
+        candidates = per_step[0] if per_step else 16
+        e, seconds = error(ReSTIRSampler(problem.scene, preset="persistent", candidates=candidates, burn_in=burn_in,
+                                         m_cap=m_cap or None, light_guide=share), a.steps)
+        name = (f"persistent, burn_in={burn_in}, m_cap={m_cap or 'default'}" + (f", candidates={candidates}" if per_step else "")
+                + (f", light_guide={share:g}" if share else ""))
         out[name] = e
         print(f"| {name} | {e:.5f} | {e / floor if floor > 0 else float('inf'):.2f} | {seconds:.0f} |", flush=True)
     return out

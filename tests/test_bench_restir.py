@@ -275,9 +275,9 @@ def test_chains_script_tiny_run():
     spec = importlib.util.spec_from_file_location("restir_chains", path)
     chains = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(chains)
-    out = chains.main(["many_lights", "--resolution", "16", "--steps", "3", "--oracle-steps", "2", "--ref-spp", "64", "--chains", "2:0,4:64"])
+    out = chains.main(["many_lights", "--resolution", "16", "--steps", "3", "--oracle-steps", "2", "--ref-spp", "64", "--chains", "2:0,4:64:2"])
     assert len(out) == 5 and all(math.isfinite(v) and v >= 0 for v in out.values())
-    assert {"persistent, burn_in=2, m_cap=default", "persistent, burn_in=4, m_cap=64"} <= set(out)
+    assert {"persistent, burn_in=2, m_cap=default", "persistent, burn_in=4, m_cap=64, candidates=2"} <= set(out)
     assert out["RIS 1024"] < out["RIS 256"]  # more candidates, less light noise
 
 
@@ -321,6 +321,12 @@ def test_restir_variants_can_be_run_alone():
     guided = parse_args(["--restirs", "persistent", "--light-guide", "0.5"])
     assert bench.sampler_options("ReSTIR (persistent)", guided)["light_guide"] == 0.5
     assert "light_guide" not in bench.sampler_options("ReSTIR (shadowed)", guided)
+    cheap = parse_args(["--restirs", "persistent", "--chain-candidates", "4"])
+    assert bench.sampler_options("ReSTIR (persistent)", cheap)["candidates"] == 4
+    assert bench.sampler_options("B.2", cheap)["candidates"] == 16  # the baselines keep --candidates
+    assert bench.sampler_options("ReSTIR (persistent)", alone)["candidates"] == 16
+    with pytest.raises(SystemExit):
+        parse_args(["--chain-candidates", "0"])
     spp_eq = {"direct": 2, "B.1": 2, "B.2": 2, "ReSTIR (persistent)": 1}
     runs = [_run(m, s, [0.3 / math.sqrt(s)] * 2, 0.1 * s) for m in BASELINES for s in (1, 2)]
     runs += [_run("ReSTIR (persistent)", 1, [0.05, 0.05], 0.15), _run(ORACLE, 1, [0.04, 0.04])]

@@ -208,6 +208,73 @@ def test_redrawn_lanes_continue_their_ris_over_the_burn_in_count(oxalis):
     assert (without == 4).mean() > 0.1  # about a quarter of the lanes were redrawn in the last step
 
 
+@pytest.mark.parametrize("n, lifetime", [(576, 4.0), (576, 2048.0), (16384, 2048.0), (100, 7.5)])
+def test_redrawn_lanes_each_with_probability_one_over_the_lifetime(n, lifetime):
+    """Each step redraws floor(n / lifetime) or one more lanes, those its slots name, and each
+    lane with probability 1 / lifetime (binomial bound over 400 steps)."""
+    torchir.backend.set_variant("auto")
+    from torchir.integrators.restir_di import RedrawnLanes
+
+    lane = dr.arange(mi.UInt32, n)
+    counts = np.zeros(n)
+    steps = 400
+    for seed in range(steps):
+        redrawn = RedrawnLanes(n, lifetime, dr.opaque(mi.UInt32, seed))
+        mask = np.asarray(redrawn.mask(lane))
+        slot = dr.arange(mi.UInt32, redrawn.slots)
+        named = np.asarray(redrawn.lane_of(slot))[np.asarray(redrawn.active(slot))]
+        assert sorted(named.tolist()) == np.flatnonzero(mask).tolist()
+        assert math.floor(n / lifetime) <= mask.sum() <= math.ceil(n / lifetime)
+        counts += mask
+    p = 1.0 / lifetime
+    assert abs(counts.sum() / (n * steps) - p) < 4 * math.sqrt(p * (1 - p) / (n * steps))
+    if steps * p >= 20:  # per lane: every lane is redrawn about as often
+        assert np.abs(counts - steps * p).max() < 5 * math.sqrt(steps * p * (1 - p)) + 1
+
+
+def test_young_continuation_is_ris_over_all_its_helpers_candidates(oxalis):
+    """A redrawn lane's continuation runs on helper streams of c candidates each, one chosen in
+    proportion to its w_sum: RIS over all P c candidates, so E[h(y) W] = ∫ h for any h (R5).
+    With h = p̂ on one emitter, ``1[em(y) = e] w_sum / M``: matched per emitter against plain RIS
+    over 64 candidates at the same points. c = 1 here, so choosing a helper any other way (the
+    first, uniformly) would weight the emitters by their candidate density (uniform over the
+    many dim and hidden lights), not by p̂ (the two spots)."""
+    from torchir.integrators._light import FORWARD_FLAGS
+    from torchir.integrators.restir_di import RedrawnLanes, _sample_rays
+
+    integrator = ReSTIRSampler(oxalis, preset="persistent", candidates=2, burn_in=2, offset_lifetime=4.0).integrator
+    scene, sensor = oxalis.mi_scene, oxalis.mi_scene.sensors()[0]
+    w, h = (int(v) for v in sensor.film().crop_size())
+    n, emitters, extra = w * h, len(scene.emitters()), 4
+    with dr.suspend_grad():
+        sampler = sensor.sampler().fork()
+        sampler.seed(0, n)
+        ray, _, _ = _sample_rays(sensor, sampler, 1, w, h)
+        pi = scene.ray_intersect_preliminary(mi.Ray3f(ray), coherent=True)
+        si = pi.compute_surface_interaction(mi.Ray3f(ray), FORWARD_FLAGS)
+        valid, lane = si.is_valid(), dr.arange(mi.UInt32, n)
+        diffs = []
+        for seed in range(60):
+            opaque_seed = dr.opaque(mi.UInt32, seed)
+            redrawn = RedrawnLanes(n, 4.0, opaque_seed)
+            young = valid & redrawn.mask(lane)
+            y, _, _, w_sum, m = integrator._young_continuation(scene, sensor, opaque_seed, ray, pi, young, redrawn,
+                                                               extra)
+            assert m == extra  # c = 1 candidate on each of P = 4 helpers
+            sampler.seed(dr.opaque(mi.UInt32, 10_000 + seed), n)
+            y_ref, _, _, w_ref, _ = integrator._streaming_ris(scene, si, sampler, valid, n, False, 64)
+            at = np.asarray(young)
+            ours = np.bincount(np.asarray(y.em)[at], np.asarray(w_sum)[at] / m, emitters)
+            ref = np.bincount(np.asarray(y_ref.em)[at], np.asarray(w_ref)[at] / 64, emitters)
+            diffs.append(ours - ref)
+    diffs = np.stack(diffs)
+    assert np.isfinite(diffs).all()
+    mean, se = diffs.mean(0), diffs.std(0, ddof=1) / math.sqrt(len(diffs))
+    lit = se > 0
+    assert lit.sum() >= 2  # the spots at least
+    assert (np.abs(mean[lit]) < 4 * se[lit]).all()
+
+
 @pytest.mark.parametrize("target, preset", [("shadowed", "restir"), ("unshadowed", "restir"), ("shadowed", "persistent")])
 def test_reuse_gradient_unbiased(oxalis, prb_gradient, target, preset):
     """12 independent chains (burn-in 4, then 4 steps each); z over chain means. The
@@ -938,16 +1005,20 @@ def test_oxalis_lite_emitter_pdf_option():
 
 
 # ---------------------------------------------------------------------------------- frozen pass
-@pytest.mark.parametrize("preset", ["b2", "restir"])
-def test_frozen_pass_equals_the_traced_one(oxalis, preset):
+@pytest.mark.parametrize("preset, options", [("b2", {}), ("restir", {}),
+                                             ("persistent", {"offset_lifetime": 4.0, "light_guide": 0.5})],
+                         ids=["b2", "restir", "persistent-guided"])
+def test_frozen_pass_equals_the_traced_one(oxalis, preset, options):
     """Replayed passes give the same images and gradients as traced ones, step after step,
-    while the texture changes between steps (its new values reach the replay)."""
+    while the texture changes between steps (its new values reach the replay). Persistent
+    chains: a quarter of the lanes redrawn a step (their continuation on helper streams), with
+    light guides."""
     tex = oxalis.get(KEY)
     torch.manual_seed(1)
     weights = torch.rand(3, RES, RES)
     out = {}
     for freeze in (False, True):
-        r = ReSTIRSampler(oxalis, preset=preset, candidates=3, burn_in=2, nn_backend="screen", freeze=freeze)
+        r = ReSTIRSampler(oxalis, preset=preset, candidates=3, burn_in=2, nn_backend="screen", freeze=freeze, **options)
         steps = []
         for s in range(4):
             t = (tex * (1.0 - 0.1 * s)).requires_grad_()

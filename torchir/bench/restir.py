@@ -132,6 +132,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--nn-backend", default="auto", choices=("auto", "kdtree", "grid", "screen"))
     p.add_argument("--chain-cap", type=int, default=None,
                    help="M cap of the persistent chains (default: the preset's, 64 x candidates; scripts/restir_chains.py measures longer ones)")
+    p.add_argument("--chain-candidates", type=int, default=None,
+                   help="candidates a step of the persistent chains (default: --candidates); their burn-in is --burn-in passes of these")
     p.add_argument("--light-guide", type=float, default=0.0,
                    help="light_guide of the persistent chains: the share of candidates drawn from each lane's learned guide (0: off)")
     p.add_argument("--grad-steps", type=int, default=None, help="gradient steps per method (default 32, quick 8)")
@@ -172,6 +174,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     if not 1 <= len(counts) <= 2 or counts[0] < 1:
         p.error("--oracle-candidates takes one or two positive integers, e.g. 256,1024")
     a.oracle_low, a.oracle_candidates = counts[0] if len(counts) == 2 else None, counts[-1]
+    if a.chain_candidates is not None and a.chain_candidates < 1:
+        p.error(f"--chain-candidates must be >= 1, got {a.chain_candidates}")
     for name in ("resolution", "spp", "candidates", "oracle_candidates", "cal_steps", "max_spp", "recon_steps", "recon_seeds", "target_spp"):
         if getattr(a, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1")
@@ -218,7 +222,7 @@ def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None
     if method == ORACLE_LOW:
         return {"preset": "b2", "candidates": a.oracle_low}
     if method == "ReSTIR (persistent)":
-        return {"preset": "persistent", "candidates": a.candidates, "burn_in": a.burn_in, "m_cap": a.chain_cap,
+        return {"preset": "persistent", "candidates": a.chain_candidates or a.candidates, "burn_in": a.burn_in, "m_cap": a.chain_cap,
                 "light_guide": a.light_guide}
     if method in ALL_RESTIRS:
         target = "unshadowed" if "unshadowed" in method else "shadowed"
@@ -699,6 +703,13 @@ def gain_text(row: dict[str, Any], best: str, method: str) -> str:
     return text
 
 
+def _chain_options(cfg: dict[str, Any]) -> str:
+    """The persistent chains' own options, where given (older results have none)."""
+    parts = [f"{label} {cfg[key]}" for key, label in (("chain_candidates", "chains' M"), ("chain_cap", "chain cap"),
+                                                      ("light_guide", "light guide")) if cfg.get(key)]
+    return "".join(part + ", " for part in parts)
+
+
 def tables(results: dict[str, Any]) -> str:
     """The suite's Markdown: per scene the method table and the per-stage costs, then the
     overview across scenes."""
@@ -706,6 +717,7 @@ def tables(results: dict[str, Any]) -> str:
     spp = cfg["spp"]
     lines = [
         f"### ReSTIR benchmark ({cfg['resolution']}², {spp} spp, M = {cfg['candidates']}, burn-in {cfg['burn_in']}, "
+        f"{_chain_options(cfg)}"
         f"floor oracle: RIS over {_oracle_counts(cfg)} shadowed candidates, no reuse)",
         "",
         (f"Gradient error: RMS over {cfg['grad_steps']} steps of ||g − g_ref|| / ||g_ref|| at the grey texture (fixed L2 adjoint; "

@@ -39,13 +39,14 @@
    * - ``offset_lifetime``
      - float
      - steps a camera sample keeps its offset in the pixel, on average (each step a lane's
-       offset is redrawn with probability 1 / lifetime, independently of everything else, so
-       every step's offsets stay uniform and its estimate unbiased); 0 = a fresh offset every
+       offset is redrawn with probability 1 / lifetime, chosen by the seed alone, not by the
+       offsets or their hits, so every step's offsets stay uniform and its estimate unbiased;
+       ``RedrawnLanes``: a fixed count of lanes a step); 0 = a fresh offset every
        step; ``inf`` = until the sensor or the geometry changes. With ``temporal`` and without
        ``spatial`` a kept lane resamples with its own previous reservoir, at the same shading
        point; a redrawn lane starts afresh, its first RIS running over ``burn_in x candidates``
-       more candidates (in the same pass; else such young lanes dominate the error: see
-       ``_pass``). See ``preset="persistent"`` of ``ReSTIRSampler``.
+       more candidates (in the same pass, on helper streams; else such young lanes dominate
+       the error: see ``_pass``). See ``preset="persistent"`` of ``ReSTIRSampler``.
      - 0
    * - ``light_guide``
      - float
@@ -561,12 +562,14 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         sampler.set_samples_per_wavefront(spp)
         sampler.seed(seed, n)
         lane = dr.arange(mi.UInt32, n)
+        redrawn = None
         if keep_offsets:
             # redrawn independently of the offset and its hit (else offsets would drift towards
             # hits); NaN: no offset stored (an older checkpoint)
             keep = dr.isfinite(prev.offset.x)
-            if math.isfinite(self.offset_lifetime):  # a hash apart from the sampler's (its values fill redrawn lanes)
-                keep &= mi.sample_tea_float32(lane, seed ^ 0x0FF5E7D0) * self.offset_lifetime >= 1.0
+            if math.isfinite(self.offset_lifetime):
+                redrawn = RedrawnLanes(n, self.offset_lifetime, seed)
+                keep &= ~redrawn.mask(lane)
             ray, ray_weight, offset = _sample_rays(sensor_obj, sampler, spp, w, h, prev.offset, keep)
         else:
             ray, ray_weight, offset = _sample_rays(sensor_obj, sampler, spp, w, h)
@@ -585,27 +588,29 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         y, f_sel, phat_sel, w_sum, zero = self._streaming_ris(scene, si, sampler, valid, n, zero_remainder, candidates,
                                                               guide=draws, learn=learn)
         m_fresh = mi.Float(candidates)
-        if keep_offsets and self.lane_chains and self.burn_in > 0 and self.young_lane_burn_in and candidates == self.candidates:
+        if (redrawn is not None and self.lane_chains and self.burn_in > 0 and self.young_lane_burn_in
+                and candidates == self.candidates):
             # A redrawn lane starts a new chain at a new point: with this step's candidates only, its
             # estimate is far noisier than its kept neighbours' for as long as its chain is young
             # (measured on ajar_painting, 128², burn-in 512: such lanes, 1 / offset_lifetime of
             # them a step, raised the gradient error from 0.0072 to 0.0098 within 32 steps). So
-            # it continues this step's RIS over the burn-in's count of candidates, in the same
-            # kernel (the loop runs only for those lanes). Same point, same candidate density:
-            # plain RIS over more candidates. (A burn-in pass has that many of its own.)
-            young = valid & ~keep
-            extra = self.burn_in * self.candidates
-            y2, f2, phat2, w_sum2, _ = self._streaming_ris(scene, si, sampler, young, n, False, extra, unroll=False,
-                                                           guide=draws)
+            # it continues this step's RIS over the burn-in's count of candidates: same point,
+            # same candidate density, plain RIS over more candidates (a burn-in pass has that
+            # many of its own). Spread over helper streams (see _young_continuation).
+            young = valid & redrawn.mask(lane) & dr.isfinite(prev.offset.x)
+            y2, f2, phat2, w_sum2, m2 = self._young_continuation(scene, sensor_obj, seed, ray, pi, young, redrawn,
+                                                                 self.burn_in * self.candidates)
             take = young & (sampler.next_1d(young) * (w_sum + w_sum2) < w_sum2)
             y, f_sel, phat_sel = dr.select(take, y2, y), dr.select(take, f2, f_sel), dr.select(take, phat2, phat_sel)
             w_sum = w_sum + dr.select(young, w_sum2, 0.0)
-            m_fresh = dr.select(young, mi.Float(candidates + extra), m_fresh)
+            m_fresh = dr.select(young, mi.Float(candidates + m2), m_fresh)
         if not self.shadowed:  # one shadow ray for the chosen candidate; W = 0 when occluded
             seen = _visible(scene, si, y, valid & (phat_sel > 0))
             w_sum, f_sel = dr.select(seen, w_sum, 0.0), dr.select(seen, f_sel, 0.0)
         r = fresh_reservoirs(ray, pi, si, valid, y, w_sum, phat_sel, m_fresh, offset)
-        dr.eval(r, f_sel, phat_sel, le_vis, ray_weight)
+        # with the guides' learned light: evaluated later, it would draw every candidate again
+        # in a kernel of its own (measured: 8 of a guided pass's 23 ms)
+        dr.eval(r, f_sel, phat_sel, le_vis, ray_weight, draws.learned if draws is not None else ())
         t1 = tic("ris", t0)
 
         n_ok, cap = None, m_cap
@@ -647,6 +652,55 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         dr.eval(image, zero if zero is not None else (), guide if guide is not None else ())
         tic("develop", t1)
         return ray_weight, image, r, n_ok, zero, guide
+
+    def _young_continuation(self, scene, sensor_obj, seed, ray, pi, young: mi.Bool, redrawn: "RedrawnLanes",
+                            extra: int):
+        """``(y, f, p̂, w_sum, M)`` (lane-wide; 0 but where ``young``) of plain streaming RIS over
+        about ``extra`` candidates (``M`` of them) at the first hits ``pi`` of the camera rays
+        ``ray`` of the redrawn lanes ``young``.
+
+        Why helpers: looping ``extra`` times in the redrawn lanes alone (8 of 16 384 a step at
+        lifetime 2 048) keeps one core's SIMD packets busy with one live lane each: at
+        ``extra = 32 768`` that cost 0.15 s a step, 3x the rest of a guided pass (ajar_painting,
+        128²). Instead ``P`` helper streams per redrawn lane each run ``c`` candidates at its
+        shading point (``P c >= extra``, about one helper per lane of the pass), and one of
+        them is chosen in proportion to its ``w_sum`` (exactly streaming RIS over all ``P c``
+        candidates: they are i.i.d.). The lanes' light guides were emptied where redrawn, so
+        the candidates are plain ones; the guides learn at the next steps."""
+        n = dr.width(young)
+        slots = redrawn.slots
+        per_helper = max(1, math.ceil(extra * slots / n))
+        helpers_per_slot = math.ceil(extra / per_helper)
+        width = slots * helpers_per_slot
+        helper = dr.arange(mi.UInt32, width)
+        slot = helper // helpers_per_slot
+        target = redrawn.lane_of(slot)
+        ray, pi = mi.Ray3f(ray), mi.PreliminaryIntersection3f(pi)
+        dr.eval(ray, pi, young)  # one kernel (gathered from unevaluated, each field is one)
+        active = dr.gather(mi.Bool, young, target, redrawn.active(slot))
+        ray_h = dr.gather(mi.Ray3f, ray, target, active)
+        si_h = dr.gather(mi.PreliminaryIntersection3f, pi, target, active).compute_surface_interaction(
+            ray_h, FORWARD_FLAGS, active)
+        sampler = sensor_obj.sampler().fork()
+        sampler.set_sample_count(1)
+        sampler.set_samples_per_wavefront(1)
+        sampler.seed(seed ^ 0x9E3779B9, width)
+        y, f, phat, w_sum, _ = self._streaming_ris(scene, si_h, sampler, active, width, False, per_helper)
+        dr.eval(y, f, phat, w_sum)
+        # choose one helper per slot in proportion to its w_sum: the helper whose interval
+        # [running sum - w_sum, running sum) holds u * total (the last one with mass also takes
+        # the total itself, should rounding put u * total there)
+        below_and_own = dr.block_prefix_sum(w_sum, helpers_per_slot, exclusive=False)
+        total = dr.gather(mi.Float, below_and_own, slot * helpers_per_slot + helpers_per_slot - 1)
+        t = mi.sample_tea_float32(slot, seed ^ 0x7A3C1E55) * total
+        chosen = active & (w_sum > 0) & (below_and_own - w_sum <= t) & ((t < below_and_own) | (below_and_own >= total))
+        y_out, f_out = dr.zeros(LightSample(), n), dr.zeros(mi.Color3f, n)
+        phat_out, w_out = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
+        dr.scatter(y_out, y, target, chosen)
+        dr.scatter(f_out, f, target, chosen)
+        dr.scatter(phat_out, phat, target, chosen)
+        dr.scatter(w_out, total, target, chosen)  # where no helper has mass: w_sum 0, no sample
+        return y_out, f_out, phat_out, w_out, helpers_per_slot * per_helper
 
     def _streaming_ris(self, scene, si, sampler, valid, n: int, zero_remainder: bool, candidates: int,
                        unroll: bool | None = None, guide: _light_guide.GuideDraws | None = None, learn: bool = True):
@@ -992,6 +1046,33 @@ def _sensor(scene: mi.Scene, sensor) -> tuple[int, mi.Sensor]:
         if s is sensor:
             return i, s
     raise ValueError("the sensor does not belong to the scene")
+
+
+class RedrawnLanes:
+    """Which of a pass's ``n`` lanes redraw their camera offset this step: ``n / lifetime`` of
+    them on average, chosen by the seed alone (never by their offsets or hits), so each lane
+    is redrawn with probability ``1 / lifetime``. Exactly ``floor(n / lifetime)`` or one more
+    lanes, evenly strided from a random start: a fixed count of slots, so the redrawn lanes'
+    work has a fixed shape (frozen passes; see ``_young_continuation``)."""
+
+    def __init__(self, n: int, lifetime: float, seed: mi.UInt32) -> None:
+        expected = n / lifetime
+        self.n, self.slots = n, max(1, math.ceil(expected))
+        self.stride = n // self.slots
+        whole = math.floor(expected)
+        self.count = whole + mi.UInt32(mi.sample_tea_float32(seed, 0x0FF5E7D0) < expected - whole)
+        self.start = mi.sample_tea_32(seed, 0x51EDB0A7)[0] % n
+
+    def lane_of(self, slot: mi.UInt32) -> mi.UInt32:
+        return (self.start + slot * self.stride) % self.n
+
+    def active(self, slot: mi.UInt32) -> mi.Bool:
+        return slot < self.count
+
+    def mask(self, lane: mi.UInt32) -> mi.Bool:
+        """Lane-wide: whether each lane is redrawn."""
+        d = (lane + self.n - self.start) % self.n
+        return (d % self.stride == 0) & self.active(d // self.stride)
 
 
 def _sample_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, w: int, h: int, kept: mi.Point2f | None = None,
