@@ -196,13 +196,15 @@ def test_chains_with_a_light_guide_stay_unbiased(ajar):
 
 
 def test_guides_survive_a_checkpoint(ajar):
-    """``state_dict`` keeps the lanes' guides: a loaded sampler draws from what was learned."""
-    r = ReSTIRSampler(ajar, preset="persistent", candidates=4, burn_in=8, light_guide=0.5)
+    """``state_dict`` keeps the lanes' guides: a loaded sampler draws from what was learned.
+    (The chains test's options: its kernels, compiled already, serve here too.)"""
+    options = dict(preset="persistent", candidates=8, burn_in=16, offset_lifetime=4.0, light_guide=0.5)
+    r = ReSTIRSampler(ajar, **options)
     for s in range(2):
-        render(ajar, {}, spp=1, seed=s, sampler=r)
+        render(ajar, {}, spp=2, seed=s, sampler=r)
     saved = r.integrator.states[0].guide
     assert saved is not None and float(dr.sum(saved.mass_x)[0]) > 0
-    loaded = ReSTIRSampler(ajar, preset="persistent", candidates=4, burn_in=8, light_guide=0.5)
+    loaded = ReSTIRSampler(ajar, **options)
     loaded.load_state_dict(r.state_dict())
     got = loaded.integrator.states[0].guide
     for k in ("light", "mass_l", "mass_x", "mass_y"):
