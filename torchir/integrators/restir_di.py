@@ -566,10 +566,12 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if keep_offsets:
             # redrawn independently of the offset and its hit (else offsets would drift towards
             # hits); NaN: no offset stored (an older checkpoint)
-            keep = dr.isfinite(prev.offset.x)
+            stored = dr.isfinite(prev.offset.x)
+            keep = stored
             if math.isfinite(self.offset_lifetime):
                 redrawn = RedrawnLanes(n, self.offset_lifetime, seed)
-                keep &= ~redrawn.mask(lane)
+                redrawn_here = redrawn.mask(lane)
+                keep = stored & ~redrawn_here
             ray, ray_weight, offset = _sample_rays(sensor_obj, sampler, spp, w, h, prev.offset, keep)
         else:
             ray, ray_weight, offset = _sample_rays(sensor_obj, sampler, spp, w, h)
@@ -597,7 +599,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             # it continues this step's RIS over the burn-in's count of candidates: same point,
             # same candidate density, plain RIS over more candidates (a burn-in pass has that
             # many of its own). Spread over helper streams (see _young_continuation).
-            young = valid & redrawn.mask(lane) & dr.isfinite(prev.offset.x)
+            young = valid & redrawn_here & stored
             y2, f2, phat2, w_sum2, m2 = self._young_continuation(scene, sensor_obj, seed, ray, pi, young, redrawn,
                                                                  self.burn_in * self.candidates)
             take = young & (sampler.next_1d(young) * (w_sum + w_sum2) < w_sum2)
