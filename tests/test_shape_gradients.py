@@ -250,13 +250,9 @@ def test_whole_edge_samples_resampled_stay_unbiased_with_less_variance_on_a_crow
     """RIS over 8 whole edge samples (pair, point, light point; target |adjoint · F|) against one,
     on the lumpy crown blocker (792 edges, a few percent on the light's outline), 32², four kept
     samples per pixel, 40 guided calls each after 4: the means agree within 4 s.e. and the sd
-    drops more than 1.2x. Measured 1.9-2.3x on halves of such runs; with 40 calls the log of
-    the ratio has an s.e. of about 0.16. The bound was 1.4, about 2 s.e. below 2.0, and a CI
-    run measured 1.38 (the outcome changes with the tests run before it in the process; why is
-    not known).
-    1.2 sits 3.2 s.e. below 2.0, so it fails about once in 1 400 runs by chance. It still fails a
-    uniform target instead of |adjoint · F|, which gave 0.5x (5.5 s.e. below 1.2). It tells
-    "no gain" (1x) apart only weakly (1.1 s.e.). 0 candidates is refused."""
+    drops more than 1.4x. Measured 1.9-2.3x on halves of such runs; with 40 calls the log of
+    the ratio has an s.e. of about 0.16, so 1.4 sits about 2 s.e. from both 2.0 and 1 (no
+    gain); a uniform target instead of |adjoint · F| gave 0.5x. 0 candidates is refused."""
     import math
 
     from torchir.integrators import _shadow_edges
@@ -267,7 +263,7 @@ def test_whole_edge_samples_resampled_stay_unbiased_with_less_variance_on_a_crow
     eight = _edge_gradients(*problem, 4 * res * res, 44, guides={}, edge_candidates=8)[4:]
     se = math.sqrt((one.var(ddof=1) + eight.var(ddof=1)) / len(one))
     assert abs(one.mean()) > 8 * se and abs(eight.mean() - one.mean()) < 4 * se, (one.mean(), eight.mean(), se)
-    assert one.std(ddof=1) > 1.2 * eight.std(ddof=1), (one.std(), eight.std())
+    assert one.std(ddof=1) > 1.4 * eight.std(ddof=1), (one.std(), eight.std())
     scene, _, adjoint, blocker = problem
     with pytest.raises(ValueError, match="edge_candidates"):
         _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, 16, 0, None, edge_candidates=0)
