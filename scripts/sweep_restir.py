@@ -12,7 +12,9 @@ and the compilation, timed apart). How the defaults (16 candidates, 8 neighbours
         'preset="b2"' 'burn_in=32' 'burn_in=32,m_cap=160' 'burn_in=32,neighbors=8' \
         'burn_in=32,candidates=32' 'burn_in=32,neighbors=8,candidates=16' 'burn_in=32,target="unshadowed"'
 
-Options of the scene: ``--scene-options 'door=0.005'``.
+Options of the scene: ``--scene-options 'door=0.005'``. Gradient paths: the sampler's default
+(``decorrelated`` since issue 39, a second resampling pass a step); add ``grad_paths="shared"``
+to an option set for the paper's shared paths (the step times measured before).
 """
 from __future__ import annotations
 

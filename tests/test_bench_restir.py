@@ -226,6 +226,16 @@ def test_options_and_default_scenes():
     with pytest.raises(SystemExit):
         parse_args(["--oracle-candidates", "1,2,3"])
     assert full.grad_steps > q.grad_steps and full.recon_steps > q.recon_steps
+    # decorrelated paths first (issue 39): they fill the main table and the gradient-error runs
+    assert (q.grad_paths, full.grad_paths) == (["decorrelated"], ["decorrelated", "shared"])
+    assert parse_args(["--grad-paths", "shared"]).grad_paths == ["shared"]
+    from torchir import Scene
+    from torchir.bench.restir import Problem
+
+    problem = Problem("oxalis_lite", Scene.builtin("oxalis_lite", resolution=8), "", None, None, None, 0.0, 0.0)
+    for a, want in ((q, "decorrelated"), (parse_args(["--grad-paths", "shared,decorrelated"]), "shared")):
+        assert problem.sampler("direct", a) is None
+        assert {problem.sampler(m, a).integrator.grad_paths for m in ("B.1", "B.2", *ALL_RESTIRS)} == {want}
     import torchir
 
     present = [s for s in ("ajar_painting", "many_lights", "oxalis_lite") if s in torchir.scenes.available()]

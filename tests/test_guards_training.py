@@ -122,3 +122,16 @@ def test_every_step_and_view_renders_with_a_fresh_seed(tmp_path, monkeypatch):
     assert [seed for _, seed in seen] == [model.step_seed(step, 0) for step in range(4)]
     other = InverseRenderingModule(scene="cbox", resolution=8, seed=1, parameters={KEY: {"init": 0.3}})
     assert other.step_seed(0, 0) != model.step_seed(0, 0)
+
+
+def test_a_minimal_config_without_a_logger_runs(tmp_path, monkeypatch):
+    """Scene, one parameter, spp, max_steps: the first YAML a user writes. It names no
+    ``trainer.logger``; the default CSV logger must still work (it once failed with
+    "'LazyInstance_CSVLogger' object has no attribute '_version'")."""
+    config = tmp_path / "minimal.yaml"
+    config.write_text("model:\n  scene: cbox\n  resolution: 8\n  spp: 1\n  parameters:\n    red.reflectance.value: {init: 0.5}\n"
+                      "data:\n  target_spp: 4\ntrainer:\n  max_steps: 2\n  enable_progress_bar: false\n")
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["fit", "--config", str(config), "--images.exr", "false"]) == 0
+    run = tmp_path / "results" / "torchir" / "version_0"
+    assert (run / "metrics.csv").is_file() and (run / "result.yaml").is_file()

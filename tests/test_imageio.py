@@ -189,3 +189,127 @@ def test_dict_scenes_bind_8bit_textures_too(texture_files):
         "wall": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "filename": str(texture_files / "tex8.png")}}},
     })
     assert scene.info("wall.bsdf.reflectance.data").type_name == "TensorXf"
+
+
+# ------------------------------------------------------------------ clipped pixels of photos
+def _old_rule(image: torch.Tensor, saturation: float = 1.0) -> torch.Tensor:
+    """The trainer's rule before lossy files had their own: any channel at the top code."""
+    return (image >= 0.995 * saturation).any(dim=-3, keepdim=True)
+
+
+def _photo(size: int = 64) -> torch.Tensor:
+    """(3, size, size) linear radiance of a made-up photo: a dim textured background, an
+    over-exposed warm lamp (off the 8x8 block grid), a white disc and a 2-pixel red bar (both
+    clipped), a bright patch that did not clip, and a 3x3 box filter so edges hold mixed pixels,
+    as a render's pixel filter leaves them."""
+    y, x = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32), indexing="ij")
+    base = 0.03 + 0.3 * (x / size) * (1 - y / size) + 0.05 * torch.sin(x / 3) * torch.cos(y / 5) ** 2
+    image = torch.stack([base, 0.8 * base, 0.6 * base + 0.02])
+    image[:, 5:9, 19:33] = torch.tensor([20.0, 15.0, 5.0])[:, None, None]
+    image[:, (x - 44.5) ** 2 + (y - 40.5) ** 2 <= 5.5**2] = torch.tensor([3.0, 3.0, 3.2])[:, None]
+    image[:, 50:62, 13:15] = torch.tensor([8.0, 2.0, 1.0])[:, None, None]
+    image[:, 30:38, 4:12] = 0.8
+    return torch.nn.functional.avg_pool2d(image[None], 3, 1, 1, count_include_pad=False)[0]
+
+
+def _write_jpeg(path, image: torch.Tensor, quality: int) -> None:
+    """An 8-bit sRGB JPEG at ``quality``, as a camera or an image editor saves a photo."""
+    import mitsuba as mi
+
+    x = image.clamp(0, 1).permute(1, 2, 0).double().numpy()
+    encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    bitmap = mi.Bitmap(np.ascontiguousarray(np.rint(encoded * 255).astype(np.uint8)), mi.Bitmap.PixelFormat.RGB)
+    bitmap.set_srgb_gamma(True)
+    bitmap.write(str(path), quality=quality)
+
+
+@pytest.mark.parametrize("quality", [50, 75, 90, 95])
+def test_clipped_mask_of_a_jpeg_leaves_out_what_the_codec_smeared(tmp_path, quality):
+    """JPEG pulls a clipped lamp's edge pixels below the top code (true radiance 3-20, target
+    ~0.9: the old rule kept 52-110 of them here). The lossy mask leaves out every pixel that
+    clipped, so no kept pixel is off by more than 1 from the true radiance the render converges
+    to, and it leaves out few others: not the dark pixels around the lamp nor a bright patch
+    away from it."""
+    from torchir.imageio import clipped_mask, read_image
+
+    radiance = _photo()
+    clipped = (radiance >= 1.0).any(0)
+    _write_jpeg(tmp_path / "photo.jpg", radiance, quality)
+    photo = read_image(tmp_path / "photo.jpg")
+    mask = clipped_mask(photo, lossy=True)
+    assert mask.shape == (1, 64, 64) and mask.dtype == torch.bool
+    assert not bool((clipped & ~mask[0]).any()), f"{int((clipped & ~mask[0]).sum())} clipped pixels kept"
+    residual = (photo - radiance).abs().amax(0)
+    assert float(residual[~mask[0]].max()) < 1.0
+    assert int(mask.sum()) <= int(clipped.sum()) + 20
+    assert not bool(mask[0, 30:38, 4:12].any())  # bright (0.8) but far from a clipped pixel
+    assert not bool(mask[0, 12:15, 19:33].any())  # dark ceiling 4-6 px under the lamp
+
+
+def test_clipped_mask_of_a_png_is_the_top_code(tmp_path):
+    """Lossless files keep the trainer's old rule exactly: the top code, nothing else."""
+    from torchir.imageio import clipped_mask, read_image, write_image
+
+    radiance = _photo()
+    png = read_image(write_image(tmp_path / "photo.png", radiance))
+    mask = clipped_mask(png)
+    assert torch.equal(mask, _old_rule(png))
+    assert torch.equal(mask[0], (radiance >= 1.0).any(0))  # exactly the pixels that clipped
+    noise = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0)) * 2.2
+    for saturation in (1.0, 2.0):
+        assert torch.equal(clipped_mask(noise, saturation), _old_rule(noise, saturation))
+        assert torch.equal(clipped_mask(noise[0], saturation), _old_rule(noise[0], saturation))
+
+
+def test_clipped_mask_lossy_reach_and_floor():
+    """Lossy rule: the top code, plus pixels with a channel >= 0.5 s within 8 px (Chebyshev)
+    of a top-code pixel; per image of a batch; any channel count."""
+    from torchir.imageio import clipped_mask
+
+    image = torch.full((3, 32, 32), 0.1)
+    image[1, 10, 10] = 0.995  # one channel at the top code
+    image[0, 10, 18] = 0.6  # 8 px away, bright: left out
+    image[2, 18, 2] = 0.5  # 8 px away diagonally, at the floor: left out
+    image[:, 10, 19] = 0.9  # 9 px away: kept
+    image[:, 11, 11] = 0.49  # next to it but below the floor: kept
+    mask = clipped_mask(image, lossy=True)[0]
+    assert mask.nonzero().tolist() == [[10, 10], [10, 18], [18, 2]]
+    assert clipped_mask(image)[0].nonzero().tolist() == [[10, 10]]
+    # saturation scales both thresholds
+    assert torch.equal(clipped_mask(2 * image, saturation=2.0, lossy=True)[0], mask)
+    assert not bool(clipped_mask(image, saturation=2.0, lossy=True).any())
+    # a batch: each image on its own (the second has the bright pixels but no clipped one)
+    batch = torch.stack([image, image.clone().fill_(0.1)])
+    batch[1, :, 10, 18] = 0.9
+    masks = clipped_mask(batch, lossy=True)
+    assert masks.shape == (2, 1, 32, 32) and torch.equal(masks[0, 0], mask) and not bool(masks[1].any())
+    # greyscale (read_image gives 1 channel for a grey file)
+    grey = image.amax(0, keepdim=True)
+    assert torch.equal(clipped_mask(grey, lossy=True), mask[None])
+    # nothing clipped: nothing left out, whatever is bright
+    assert not bool(clipped_mask(torch.full((3, 8, 8), 0.9), lossy=True).any())
+
+
+def test_clipped_mask_bad_input():
+    from torchir.imageio import clipped_mask
+
+    with pytest.raises(ValueError, match=r"expected an image \(C, H, W\) or a batch \(B, C, H, W\), got \(4, 4\)"):
+        clipped_mask(torch.zeros(4, 4))
+    with pytest.raises(ValueError, match=r"got \(1, 1, 3, 4, 4\)"):
+        clipped_mask(torch.zeros(1, 1, 3, 4, 4))
+    with pytest.raises(ValueError, match=r"got ndarray"):
+        clipped_mask(np.zeros((3, 4, 4)))
+    with pytest.raises(TypeError, match="floating-point tensor, got torch.uint8"):
+        clipped_mask(torch.zeros(3, 4, 4, dtype=torch.uint8))
+    for bad in (0, -1.0, float("nan"), float("inf"), "1", True):
+        with pytest.raises(ValueError, match="saturation must be a finite number > 0"):
+            clipped_mask(torch.zeros(3, 4, 4), saturation=bad)
+    with pytest.raises(TypeError, match="lossy must be True or False, got 'jpg'"):
+        clipped_mask(torch.zeros(3, 4, 4), lossy="jpg")
+
+
+def test_is_lossy():
+    from torchir.imageio import is_lossy
+
+    assert is_lossy("a.jpg") and is_lossy("x/b.JPEG")
+    assert not any(is_lossy(f) for f in ("a.png", "a.exr", "a.hdr", "a.pfm", "jpg"))

@@ -698,9 +698,9 @@ def test_torch_bridge_equals_direct_drjit_call(oxalis):
     torch.manual_seed(2)
     weights = torch.rand(3, RES, RES)
     tex = oxalis.get(KEY)
-    a = ReSTIRSampler(oxalis, candidates=4, burn_in=2)
+    a = ReSTIRSampler(oxalis, candidates=4, burn_in=2)  # decorrelated paths: the gradient pass runs on seed_grad
     t = tex.clone().requires_grad_()
-    img = render(oxalis, {KEY: t}, spp=2, seed=11, sampler=a)
+    img = render(oxalis, {KEY: t}, spp=2, seed=11, seed_grad=12345, sampler=a)
     (img * weights).sum().backward()
 
     b = ReSTIRSampler(oxalis, candidates=4, burn_in=2)
@@ -731,7 +731,7 @@ def test_emitter_intensity_gradient(oxalis):
     The hidden lights (behind an occluder) get exactly zero."""
     keys = [k for k in oxalis.params.keys() if k.endswith("intensity.value")]
     values = {k: oxalis.get(k).requires_grad_() for k in keys}
-    r = ReSTIRSampler(oxalis, candidates=4, burn_in=2)
+    r = ReSTIRSampler(oxalis, candidates=4, burn_in=2, grad_paths="shared")
     img = render(oxalis, values, spp=2, seed=0, sampler=r)
     img.sum((1, 2)).backward(torch.ones(3))
     assert (values[SPOT].grad > 0).all()
@@ -846,7 +846,7 @@ def test_documented_defaults(oxalis):
     cap is 2 x candidates unless set (spec D2's 20 x keeps stale samples too long)."""
     i = ReSTIRSampler(oxalis).integrator
     assert (i.candidates, i.neighbors, i.m_cap, i.burn_in, i.normal_threshold) == (16, 8, 32.0, 32, 0.9)
-    assert (i.temporal, i.spatial, i.grad_paths, i.forward_only) == (True, True, "shared", False)
+    assert (i.temporal, i.spatial, i.grad_paths, i.forward_only) == (True, True, "decorrelated", False)
     assert (i.target, i.freeze, i.nn_backend) == ("shadowed", True, "auto")
     assert ReSTIRSampler(oxalis, candidates=3).integrator.m_cap == 6.0
     assert ReSTIRSampler(oxalis, candidates=3, m_cap=7).integrator.m_cap == 7.0
@@ -878,7 +878,7 @@ def test_shape_interior_gradient_matches_finite_differences(tmp_path):
     })
     key = "plane.vertex_positions"
     base = scene.get(key)
-    r = ReSTIRSampler(scene, preset="b1")
+    r = ReSTIRSampler(scene, preset="b1", grad_paths="shared")  # the gradient on the differences' paths
     moved = lambda off: (base.view(-1, 3) + off).reshape(-1)  # noqa: E731
     off = torch.zeros(3, requires_grad=True)
     with pytest.warns(UserWarning, match="ReSTIR with shape parameters"):

@@ -170,7 +170,7 @@ def test_defaults_and_initial_state():
     i = ReSTIRDirectIntegrator()
     got = {k: getattr(i, k) for k in restir_di._OPTIONS}
     assert got == {"candidates": 16, "neighbors": 8, "radius": 0.0, "normal_threshold": 0.9, "m_cap": 32.0,
-                   "temporal": True, "spatial": True, "burn_in": 32, "grad_paths": "shared", "forward_only": False,
+                   "temporal": True, "spatial": True, "burn_in": 32, "grad_paths": "decorrelated", "forward_only": False,
                    "nn_backend": "auto", "target": "shadowed", "freeze": True, "multiview": "auto", "spp_chains": True,
                    "offset_lifetime": 0.0, "light_guide": 0.0}
     assert type(i.m_cap) is float and type(i.radius) is float and type(i.normal_threshold) is float
@@ -178,7 +178,7 @@ def test_defaults_and_initial_state():
     assert i.last_pass_frozen is False and i._frozen_pass is None and i._last_pass is None
     assert i.shadowed and i.reuse and i._neighbour_search.backend == "auto"
     assert i.to_string() == ("ReSTIRDirectIntegrator[candidates=16, neighbors=8, temporal=True, spatial=True, "
-                             "grad_paths='shared']")
+                             "grad_paths='decorrelated']")
     assert _integrator(candidates=3).m_cap == 6.0 and _integrator(candidates=3, m_cap=7).m_cap == 7.0
     j = _integrator(temporal=0, spatial=1, target="unshadowed", forward_only=1, freeze=0, nn_backend="grid")
     assert (j.temporal, j.spatial, j.forward_only, j.freeze) == (False, True, True, False)
@@ -765,13 +765,14 @@ def _backward(scene, i, weights, seed, spp, seed_grad, spp_grad, steps=2):
 def test_albedo_gradient(point, target):
     """On the point-light scene every configuration's image is NEE on its camera rays, so its
     gradient is that of B.1: of the image's seed (``shared``), or of ``seed_grad`` and
-    ``spp_grad`` (``decorrelated``, ``forward_only``), against exact differences."""
+    ``spp_grad`` (``decorrelated``, the default, and ``forward_only``), against exact differences."""
     weights = np.random.default_rng(0).random((RES, RES, 3))
     fd = {(seed, spp): _texel_gradient(point, seed, spp, weights) for seed, spp in ((3, 2), (9, 1))}
     assert not np.allclose(fd[3, 2], fd[9, 1], rtol=0.05)  # the check can tell the paths apart
     carry = {"grad_paths": "decorrelated", "multiview": "carry_over"}  # the pass reads the one store's state
-    for opts, want in (({}, fd[3, 2]), ({"grad_paths": "decorrelated"}, fd[9, 1]), ({"forward_only": True}, fd[9, 1]),
-                       ({**B1, "grad_paths": "decorrelated"}, fd[9, 1]), (B1, fd[3, 2]), (carry, fd[9, 1])):
+    for opts, want in (({"grad_paths": "shared"}, fd[3, 2]), ({}, fd[9, 1]), ({"forward_only": True}, fd[9, 1]),
+                       ({**B1, "grad_paths": "decorrelated"}, fd[9, 1]), ({**B1, "grad_paths": "shared"}, fd[3, 2]),
+                       (carry, fd[9, 1])):
         i = _integrator(**{"candidates": 2, "neighbors": 2, "burn_in": 1, "target": target, **opts})
         saved = (i.temporal, i.spatial)
         t0 = time.perf_counter()
@@ -793,9 +794,9 @@ def test_black_texture_gradient_is_the_p_hat_zero_remainder(point, opts):
     with _black_texture(mi.traverse(point)):
         fd = _texel_gradient(point, 3, 2, weights)
         assert (fd > 0).all()
-        g, image = _backward(point, _integrator(**opts), weights, 3, 2, 9, 1)
+        g, image = _backward(point, _integrator(grad_paths="shared", **opts), weights, 3, 2, 9, 1)  # fd: the image's seed
         np.testing.assert_allclose(g, fd, rtol=2e-4, atol=1e-6)
-        i = _integrator(**opts)
+        i = _integrator(grad_paths="shared", **opts)
         original = i.step
         i.step = lambda *a, **kw: original(*a, **{**kw, "zero_remainder": False})
         g_off, _ = _backward(point, i, weights, 3, 2, 9, 1)
@@ -875,7 +876,7 @@ def test_p_hat_zero_remainder_under_four_lights(edge_lit, opts):
     candidates are of different lights on some lanes, so the count, 1 / p_c and the first are
     each checked."""
     scene = edge_lit
-    opts = {"candidates": 3, "neighbors": 2, "temporal": False, "spatial": False, "burn_in": 0, **opts}
+    opts = {"candidates": 3, "neighbors": 2, "temporal": False, "spatial": False, "burn_in": 0, "grad_paths": "shared", **opts}
     weights = np.random.default_rng(5).random((RES, RES, 3))
     with _black_texture(mi.traverse(scene)):
         seed, spp = (9, 1) if opts.get("grad_paths") == "decorrelated" else (3, 2)
@@ -911,12 +912,12 @@ def test_decorrelated_and_forward_only_passes_are_steps_on_seed_grad(multi):
     dec = _integrator(grad_paths="decorrelated", **opts)
     g_dec = _gradient_of_step(multi, dec, weights, (103, 3), 2, 9, 2)
     assert dec.last_pass_frozen  # the gradient pass: the same view and lane layout as the reservoirs'
-    g_step = _gradient_of_step(multi, _integrator(**opts), weights, (103, 9), 2, 0, 1)
+    g_step = _gradient_of_step(multi, _integrator(grad_paths="shared", **opts), weights, (103, 9), 2, 0, 1)
     np.testing.assert_allclose(g_dec, g_step, rtol=1e-5, atol=1e-7)
     fwd = _integrator(forward_only=True, **opts)
     g_fwd = _gradient_of_step(multi, fwd, weights, (103, 3), 2, 9, 2)
     assert (fwd.temporal, fwd.spatial) == (True, True)
-    plain = _integrator(**{**opts, "temporal": False, "spatial": False})
+    plain = _integrator(**{**opts, "temporal": False, "spatial": False, "grad_paths": "shared"})
     np.testing.assert_allclose(g_fwd, _gradient_of_step(multi, plain, weights, (9,), 2, 0, 1), rtol=1e-5, atol=1e-7)
     assert not np.allclose(g_dec, g_fwd, rtol=0.05)  # reuse (the previous reservoirs) changes the gradient
 
@@ -1068,7 +1069,7 @@ def test_emitter_gradients_obey_eulers_identity(multi):
     params = mi.traverse(multi)
     keys = [SPOT, "point.intensity.value", "panel.emitter.radiance.value"]
     saved = {k: mi.Color3f(params[k]) for k in keys}
-    i = _integrator(candidates=2, neighbors=2, burn_in=1)
+    i = _integrator(candidates=2, neighbors=2, burn_in=1, grad_paths="shared")
     try:
         values = {}
         for k in keys:
@@ -1092,7 +1093,7 @@ def test_mitsuba_render_and_render_backward(point):
     from torchir.integrators import register
 
     register()
-    integrator = mi.load_dict({"type": "restir_di", "candidates": 2, "burn_in": 1, "neighbors": 2})
+    integrator = mi.load_dict({"type": "restir_di", "candidates": 2, "burn_in": 1, "neighbors": 2, "grad_paths": "shared"})
     assert integrator.m_cap == 4.0 and integrator.candidates == 2
     weights = np.random.default_rng(1).random((RES, RES, 3))
     params = mi.traverse(point)

@@ -61,7 +61,7 @@ def test_defaults(scene):
     assert r.scene is scene and r.preset == "restir" and r.seed == 0
     assert _options(r) == {
         "candidates": 16, "neighbors": 8, "radius": 0.0, "m_cap": 32.0, "temporal": True, "spatial": True,
-        "burn_in": 32, "grad_paths": "shared", "forward_only": False, "nn_backend": "auto",
+        "burn_in": 32, "grad_paths": "decorrelated", "forward_only": False, "nn_backend": "auto",
         "normal_threshold": 0.9, "target": "shadowed", "freeze": True, "multiview": "auto", "spp_chains": True,
         "offset_lifetime": 0.0,
     }
@@ -71,13 +71,13 @@ def test_defaults(scene):
 def test_options_reach_the_integrator(scene):
     r = ReSTIRSampler(
         scene, candidates=3, neighbors=5, radius=0.25, m_cap=7, temporal=False, spatial=True, burn_in=4,
-        grad_paths="decorrelated", nn_backend="grid", seed=11, normal_threshold=0.5, target="unshadowed",
+        grad_paths="shared", nn_backend="grid", seed=11, normal_threshold=0.5, target="unshadowed",
         freeze=False, multiview="carry_over", spp_chains=False, offset_lifetime=64,
     )
     assert r.preset == "restir" and r.seed == 11
     assert _options(r) == {
         "candidates": 3, "neighbors": 5, "radius": 0.25, "m_cap": 7.0, "temporal": False, "spatial": True,
-        "burn_in": 4, "grad_paths": "decorrelated", "forward_only": False, "nn_backend": "grid",
+        "burn_in": 4, "grad_paths": "shared", "forward_only": False, "nn_backend": "grid",
         "normal_threshold": 0.5, "target": "unshadowed", "freeze": False, "multiview": "carry_over", "spp_chains": False,
         "offset_lifetime": 64.0,
     }
@@ -325,12 +325,12 @@ def test_load_state_dict_replaces(scene):
 def test_repr(scene):
     assert repr(ReSTIRSampler(scene)) == (
         "ReSTIRSampler(preset='restir', candidates=16, neighbors=8, temporal=True, spatial=True, burn_in=32, "
-        "grad_paths='shared', m_cap=32, nn_backend='auto', target='shadowed')"
+        "grad_paths='decorrelated', m_cap=32, nn_backend='auto', target='shadowed')"
     )
-    r = ReSTIRSampler(scene, preset="b1", neighbors=3, m_cap=5, grad_paths="decorrelated", nn_backend="grid",
+    r = ReSTIRSampler(scene, preset="b1", neighbors=3, m_cap=5, grad_paths="shared", nn_backend="grid",
                       target="unshadowed")
     assert repr(r) == (
         "ReSTIRSampler(preset='b1', candidates=1, neighbors=3, temporal=False, spatial=False, burn_in=0, "
-        "grad_paths='decorrelated', m_cap=5, nn_backend='grid', target='unshadowed')"
+        "grad_paths='shared', m_cap=5, nn_backend='grid', target='unshadowed')"
     )
     assert str(r) == repr(r)

@@ -144,9 +144,14 @@ def test_view_dataset():
     ds = ViewDataset([3, 5], targets)
     assert len(ds) == 2
     item = ds[1]
-    assert set(item) == {"view", "target"}
+    assert set(item) == {"view", "target", "lossy"}
     assert item["view"].dtype == torch.int64 and int(item["view"]) == 5 and item["view"].dim() == 0
     assert item["target"] is targets[1]
+    assert item["lossy"].dtype == torch.bool and item["lossy"].dim() == 0 and not bool(item["lossy"])
+    flagged = ViewDataset([3, 5], targets, lossy=[True, False])
+    assert bool(flagged[0]["lossy"]) and not bool(flagged[1]["lossy"])
+    with pytest.raises(ValueError, match=r"^lossy has 1 flag\(s\) for 2 view\(s\)$"):
+        ViewDataset([3, 5], targets, lossy=[True])
 
 
 def test_load_image(tmp_path, reads):
@@ -231,6 +236,22 @@ def test_setup_files(tmp_path, fake_render):
     assert len(dm.targets) == 2
     assert torch.allclose(dm.targets[0], torch.full((3, 2, 3), 0.5))
     assert torch.allclose(dm.targets[1], torch.full((3, 2, 3), 2.0))
+
+
+def test_setup_files_lossy_flags_reach_the_batch(tmp_path, fake_render):
+    """Each view's batch item says whether its file is a JPEG (the trainer's clipped-pixel
+    mask grows for those); synthetic targets are not lossy."""
+    files = [write_image(tmp_path / name, image(value=0.5)) for name in ("a.jpg", "b.png", "c.JPEG")]
+    dm = ViewDataModule(targets=[str(f) for f in files], views=[2, 0, 1])
+    attach(dm, FakeScene(sensors=3))
+    dm.setup("fit")
+    assert dm.lossy == [True, False, True]
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["view"].tolist() == [2, 0, 1] and batch["lossy"].tolist() == [True, False, True]
+    synthetic = ViewDataModule()
+    attach(synthetic, FakeScene(sensors=2))
+    synthetic.setup("fit")
+    assert synthetic.lossy == [] and next(iter(synthetic.train_dataloader()))["lossy"].tolist() == [False, False]
 
 
 def test_setup_files_colorspace(tmp_path, reads):

@@ -14,21 +14,38 @@ file                                stored as                  ``colorspace="aut
 ``colorspace="srgb"`` or ``"linear"`` overrides what the file says (e.g. a PNG that holds
 linear data, such as a normal or roughness map: ``"linear"``). Decoding is Mitsuba's own
 (``mi.Bitmap``), applied once.
+
+A photo's over-exposed pixels only bound the radiance from below: :func:`clipped_mask` finds
+them (at the top code, and for JPEG also what the codec smeared from them), for a loss to leave
+them out.
 """
 from __future__ import annotations
 
+import math
+import numbers
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import torch
 
-__all__ = ["read_image", "write_image", "to_srgb", "save_png", "COLORSPACES", "LINEAR_SUFFIXES", "ENCODED_SUFFIXES"]
+__all__ = [
+    "read_image", "write_image", "to_srgb", "save_png", "clipped_mask", "is_lossy",
+    "COLORSPACES", "LINEAR_SUFFIXES", "ENCODED_SUFFIXES", "LOSSY_SUFFIXES", "SATURATED",
+]
 
 ColorSpace = Literal["auto", "srgb", "linear"]
 COLORSPACES = ("auto", "srgb", "linear")
 LINEAR_SUFFIXES = (".exr", ".hdr", ".pfm")
 ENCODED_SUFFIXES = (".png", ".jpg", ".jpeg")
+LOSSY_SUFFIXES = (".jpg", ".jpeg")
+
+SATURATED = 0.995  # of the saturation: an 8-bit sRGB 254 decodes to 0.991, so >= 0.995 means 255
+# A JPEG codes 8x8 blocks: what it smears from a clipped pixel stays within about a block of it.
+LOSSY_REACH = 8
+# ... and pulls clipped pixels below the top code (down to 0.87 of the saturation measured at
+# quality 50-95), so a pixel that bright in the reach of a clipped one is taken as clipped too.
+LOSSY_FLOOR = 0.5
 
 
 def _check_colorspace(colorspace: str) -> None:
@@ -48,6 +65,58 @@ def to_srgb(image: torch.Tensor, exposure: float = 1.0) -> torch.Tensor:
     """Linear radiance ``(C, H, W)`` -> display sRGB in [0, 1] (clipped, sRGB transfer curve)."""
     x = (image.detach().float() * exposure).clamp(0.0, 1.0)
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.pow(1.0 / 2.4) - 0.055)
+
+
+def is_lossy(path: str | Path) -> bool:
+    """Whether an image file is lossy-compressed (JPEG), by its suffix."""
+    return Path(path).suffix.lower() in LOSSY_SUFFIXES
+
+
+def clipped_mask(image: torch.Tensor, saturation: float = 1.0, lossy: bool = False) -> torch.Tensor:
+    """The pixels of a photo that clipped: they only say "at least this bright".
+
+    A pixel is clipped when any channel is at the top code, ``>= 0.995 * saturation`` (the whole
+    pixel: JPEG mixes codes across channels, so a clipped lamp can read (254, 255, 255)). A lossy
+    file (``lossy=True``, a JPEG) also smears its clipped pixels: edge pixels of a clipped lamp
+    decode a few codes below the top (true radiance far above it) and their neighbours ring. So
+    there a pixel is clipped too when any channel is ``>= 0.5 * saturation`` and it lies within
+    8 pixels (one JPEG block) of a pixel at the top code; darker neighbours, whose ringing the
+    sRGB curve shrinks in linear terms, stay in. ``lossy=False`` (PNG, EXR) is the top-code rule
+    alone. A clipped region that JPEG kept entirely below the top code (a lamp of a pixel or two
+    at low quality) cannot be told from a bright surface and is not found.
+
+    Args:
+        image: linear radiance, ``(C, H, W)`` or ``(B, C, H, W)``, any ``C >= 1`` (greyscale too).
+        saturation: radiance at which the photo clipped (1.0 for 8/16-bit files read by
+            :func:`read_image`).
+        lossy: whether the image was decoded from a lossy file (see :func:`is_lossy`).
+
+    Returns:
+        bool, ``(1, H, W)`` or ``(B, 1, H, W)``: True where the pixel clipped (broadcasts over
+        the channels).
+
+    Example:
+        >>> image = torch.zeros(3, 16, 16); image[:, 4:6, 4:8] = 1.0; image[:, 6, 4:8] = 0.9
+        >>> int(clipped_mask(image).sum()), int(clipped_mask(image, lossy=True).sum())
+        (8, 12)
+    """
+    if not isinstance(image, torch.Tensor) or image.dim() not in (3, 4) or image.shape[-3] < 1:
+        shape = tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__
+        raise ValueError(f"expected an image (C, H, W) or a batch (B, C, H, W), got {shape}")
+    if not image.is_floating_point():
+        raise TypeError(f"expected linear radiance as a floating-point tensor, got {image.dtype}")
+    if isinstance(saturation, bool) or not isinstance(saturation, numbers.Real) or not 0 < saturation < math.inf:
+        raise ValueError(f"saturation must be a finite number > 0, got {saturation!r}")
+    if not isinstance(lossy, bool):
+        raise TypeError(f"lossy must be True or False, got {lossy!r}")
+    brightest = image.detach().amax(dim=-3, keepdim=True)
+    clipped = brightest >= saturation * SATURATED
+    if not lossy or not bool(clipped.any()):
+        return clipped
+    batch = clipped if image.dim() == 4 else clipped.unsqueeze(0)
+    near = torch.nn.functional.max_pool2d(batch.float(), 2 * LOSSY_REACH + 1, stride=1, padding=LOSSY_REACH) > 0
+    near = near if image.dim() == 4 else near.squeeze(0)
+    return clipped | (near & (brightest >= saturation * LOSSY_FLOOR))
 
 
 def read_image(path: str | Path, colorspace: ColorSpace = "auto") -> torch.Tensor:

@@ -32,6 +32,7 @@ import mitsuba as mi
 import torch
 
 from . import backend
+from .welding import group_normals, mesh_weld
 
 __all__ = ["Scene", "ParameterInfo", "DerivedParameter"]
 
@@ -223,7 +224,6 @@ class Scene:
         self._overridden: set[str] = set()
         self._owner: object | None = None  # the render op whose grad-enabled values are bound
         self._warned: set[str] = set()
-        self._weld_checked: set[str] = set()  # meshes whose vertex sharing was checked (topology is fixed)
         self.derived: dict[str, DerivedParameter] = {}  # reparameterisations declared by the scene
         self.is_builtin = False  # made by Scene.builtin (not from a user's file or dict)
 
@@ -526,8 +526,6 @@ class Scene:
         return {**out, **targets}
 
     def _warn_discontinuous(self, name: str) -> None:
-        if name.endswith(".vertex_positions"):
-            self._warn_unwelded(name)
         integrator = type(self.integrator).__name__
         if "Projective" not in integrator:
             self.warn_once(
@@ -535,24 +533,6 @@ class Scene:
                 f"{name!r} moves visibility edges, but the scene's integrator ({integrator}) "
                 f"differentiates only the interior term: gradients miss the boundary term. Use a "
                 f"projective integrator (prb_projective, direct_projective) for shape/pose parameters.",
-            )
-
-    def _warn_unwelded(self, name: str) -> None:
-        """Projective boundary terms need faces that share their edges' vertices. Checked once per
-        mesh: optimising positions does not change which vertices a face uses."""
-        if name in self._weld_checked:
-            return
-        self._weld_checked.add(name)
-        points = self.get(name).reshape(-1, 3)
-        repeats = points.shape[0] - torch.unique(points, dim=0).shape[0]
-        if repeats:
-            self.warn_once(
-                f"{name}/unwelded",
-                f"{name!r}: {repeats} of the mesh's {points.shape[0]} vertices repeat another vertex's position "
-                f"(faces that do not share vertices, as in Mitsuba's 'cube', or uv seams). Projective boundary "
-                f"terms take such edges for open borders and count them from both faces (measured: 2.0x the "
-                f"finite-difference gradient of a 'cube' occluder). Weld the mesh (one vertex per position) for "
-                f"correct shape gradients.",
             )
 
     def warn_once(self, key: str, message: str) -> None:
@@ -591,6 +571,8 @@ class Scene:
             owner: an opaque token (the render op) for :meth:`owns_live_binding`.
         """
         params = self.params
+        moved = [name[: -len(".vertex_positions")] for name in values.keys() | self._overridden if name.endswith(".vertex_positions")]
+        welds = self._welds(moved)  # before Mitsuba's first update recomputes the loaded normals
         for name in self._overridden - values.keys():
             params[name] = self._base.pop(name)
             params.set_dirty(name)
@@ -606,9 +588,27 @@ class Scene:
             params[name] = value
             params.set_dirty(name)
         params.update()
+        if welds:  # smooth across uv seams, as the loaded mesh was (see torchir.welding.group_normals)
+            for mesh, weld in welds:
+                params[f"{mesh.id()}.vertex_normals"] = group_normals(mesh, weld)
+                params.set_dirty(f"{mesh.id()}.vertex_normals")
+            params.update()
         self._overridden = set(values)
         self._owner = owner if fresh else None
         return fresh
+
+    def _welds(self, mesh_ids: list[str]) -> list:
+        """``(mesh, MeshWeld)`` of the smooth-shaded meshes among ``mesh_ids`` whose normals
+        Mitsuba would recompute with seams (their uv-seam copies share a normal group)."""
+        if not mesh_ids:
+            return []
+        out = []
+        for shape in self.mi_scene.shapes():
+            if isinstance(shape, mi.Mesh) and shape.id() in mesh_ids and shape.has_vertex_normals():
+                weld = mesh_weld(shape)
+                if weld.merges and f"{shape.id()}.vertex_normals" in self.params:
+                    out.append((shape, weld))
+        return out
 
     @property
     def bound_names(self) -> frozenset[str]:

@@ -26,6 +26,7 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "restir_shadow": "torchir.bench.restir_shadow",
     "restir_antithetic": "torchir.bench.restir_antithetic",
     "restir_silhouette": "torchir.bench.restir_silhouette",
+    "mesh_gradients": "torchir.bench.mesh_gradients",
     "combined": "torchir.bench.combined",
     "stepcost": "torchir.bench.stepcost",
     "scaleup": "torchir.bench.scaleup",

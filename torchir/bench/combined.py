@@ -59,7 +59,7 @@ CBOX_PARAMETERS = {
     "canvas.bsdf.reflectance.data": {"init": 0.5, "bounds": [0.0, 1.0]},
     "red.reflectance.value": {"init": 0.3, "bounds": [0.0, 1.0]},
 }
-RESTIR = {"type": "restir", "candidates": 16, "neighbors": 8, "temporal": True, "spatial": True, "burn_in": 32, "grad_paths": "shared"}
+RESTIR = {"type": "restir", "candidates": 16, "neighbors": 8, "temporal": True, "spatial": True, "burn_in": 32, "grad_paths": "decorrelated"}
 TARGET_AWARE = {"type": "target_aware", "radius": 7, "bandwidth": 0.1}
 ADAPTIVE = {"type": "adaptive", "budget": 0.05, "refresh_every": 20, "levels": 4, "alpha": 0.1}
 UNIFORM = {**ADAPTIVE, "type": "uniform"}

@@ -46,9 +46,13 @@ Experiments, per scene (``--scenes``):
   ReSTIR variant trains ``--recon-steps`` steps (its burn-in falls in its first step, so it is
   charged); every other method trains for that wall time (Lightning's ``max_time``): cheaper
   methods take more steps. Texture RMSE against the ground truth after the budget. Once per
-  ``--grad-paths`` mode of the samplers: ``shared`` (the paper, the configs' default: the
-  gradient re-uses the image's paths, which correlates them, a bias of the L2 loss that grows
-  with the image noise, spec D5) and ``decorrelated``; ``direct`` (prb) is always decorrelated.
+  ``--grad-paths`` mode of the samplers: ``decorrelated`` (the default since issue 39: the
+  gradient's light samples come from a second pass on ``seed_grad``) and ``shared`` (the paper:
+  the gradient re-uses the image's paths, which correlates them, a bias of the L2 loss that
+  grows with the image noise, spec D5); ``direct`` (prb) is always decorrelated. The first
+  mode also sets the samplers' paths in the gradient-error runs (at a fixed adjoint either is
+  unbiased, but decorrelated paths cost a second resampling pass a step: the equal-time
+  budget and every sampler's step time include it).
 * **Cost per stage** (spec T-B4): seconds per step of each method at equal samples, the
   ReSTIR integrator's stage timers (RIS, NN search, combination, develop, backward; ``other``:
   the rest, e.g. the torch/Dr.Jit boundary; a pass replayed by ``dr.freeze`` has a single
@@ -59,6 +63,7 @@ Experiments, per scene (``--scenes``):
 Usage (``torchir bench restir [--quick]`` runs the same in a fresh process):
     python -m torchir.bench.restir --quick     # 32², first default scene, burn-in 8, 8 gradient / 10 training steps (< 1 min)
     python -m torchir.bench.restir             # 128², default scenes, 32 gradient steps, 150 training steps (~6-8 min)
+    python -m torchir.bench.restir --grad-paths shared   # the paper's shared paths (the figures before issue 39)
     python -m torchir.bench.restir --scenes oxalis_lite --resolution 64 --spp 2
 
 Writes ``<out>/results.json``, ``<out>/tables.md`` (= ``summary.md``, which the bench report
@@ -146,13 +151,14 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--target-spp", type=int, default=None, help="spp of the trainer's target image (default 1024, quick 128)")
     p.add_argument("--lr", type=float, default=0.02)
     p.add_argument("--grad-paths", default=None,
-                   help="comma list of the samplers' gradient paths in the reconstruction, shared and/or decorrelated "
-                        "(default both, quick shared; the first fills the main table; direct (prb) is always decorrelated)")
+                   help="comma list of the samplers' gradient paths, decorrelated and/or shared (default decorrelated,shared; "
+                        "quick decorrelated): the reconstruction runs once per mode; the first also sets the gradient-error "
+                        "runs' paths and fills the main table; direct (prb) is always decorrelated")
     p.add_argument("--no-reconstruction", action="store_true", help="skip the trainer runs")
     p.add_argument("--restirs", default="shadowed,unshadowed,persistent",
                    help="ReSTIR variants to run; the slowest sets the equal-time budget (default all three)")
     p.add_argument("--quick", action="store_true",
-                   help="32², the first default scene, burn-in 8, 8 gradient / 10 training steps, shared paths only: under a minute")
+                   help="32², the first default scene, burn-in 8, 8 gradient / 10 training steps, decorrelated paths only: under a minute")
     p.add_argument("--out", default="results/bench_restir")
     a = p.parse_args(argv)
     q = a.quick
@@ -164,7 +170,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     a.ref_spp = a.ref_spp or (1024 if q else 16384)
     a.recon_steps = a.recon_steps or (10 if q else 150)
     a.target_spp = a.target_spp or (128 if q else 1024)
-    a.grad_paths = [m.strip() for m in (a.grad_paths or ("shared" if q else "shared,decorrelated")).split(",") if m.strip()]
+    a.grad_paths = [m.strip() for m in (a.grad_paths or ("decorrelated" if q else "decorrelated,shared")).split(",") if m.strip()]
     if not a.grad_paths or any(m not in ("shared", "decorrelated") for m in a.grad_paths):
         p.error("--grad-paths takes shared and/or decorrelated")
     try:
@@ -252,6 +258,8 @@ class Problem:
     ref_seconds: float
 
     def sampler(self, method: str, a: argparse.Namespace, burn_in: int | None = None, **extra: Any):
+        """``method``'s sampler (None: the scene's own integrator), with the run's first
+        ``--grad-paths`` mode."""
         from torchir.samplers import ReSTIRSampler
 
         options = sampler_options(method, a)
@@ -259,7 +267,10 @@ class Problem:
             return None
         if burn_in is not None and "burn_in" in options:
             options = {**options, "burn_in": burn_in}
-        return ReSTIRSampler(self.scene, **options, **extra)
+        modes = getattr(a, "grad_paths", None)
+        if modes:
+            options = {"grad_paths": modes[0], **options}
+        return ReSTIRSampler(self.scene, **{**options, **extra})
 
     def step(self, sampler, spp: int, seed: int) -> tuple[float, float, dict[str, float]]:
         """One gradient at the grey texture: (seconds of render + backward, relative error, diagnostics)."""
@@ -514,7 +525,7 @@ def gradient_runs(problem: Problem, a: argparse.Namespace, keys: list[tuple[str,
 
 # ------------------------------------------------------------------------ reconstruction
 def train(name: str, key: str, method: str, a: argparse.Namespace, seed: int, targets, workdir: Path,
-          max_seconds: float | None, grad_paths: str = "shared") -> tuple[dict[str, Any], Any]:
+          max_seconds: float | None, grad_paths: str = "decorrelated") -> tuple[dict[str, Any], Any]:
     """One training run of ``method`` through the real trainer: ``recon_steps`` steps, or (with
     ``max_seconds``) as many as fit into that wall time. ``targets``: ``(images, views)`` of an
     earlier run (None: render them). Returns the measurements and the targets."""
@@ -731,9 +742,10 @@ def tables(results: dict[str, Any]) -> str:
          "'of possible' = the best baseline's error / the floor under the method (the most any light sampler can gain). "
          f"Reconstruction: the trainer, Adam lr {cfg['lr']}, L2, {spp} spp for every method, the slower ReSTIR's wall time "
          f"for {cfg['recon_steps']} steps (burn-in included) for all; texture RMSE after it, median of {cfg['recon_seeds']} seed(s); "
-         f"the samplers' gradient paths: {', '.join(cfg['grad_paths'])} (the main table: {cfg['grad_paths'][0]}; shared paths "
-         "correlate the image and its gradient, a bias of the L2 loss that grows with the image noise, spec D5; direct (prb) "
-         "always uses decorrelated paths)."),
+         f"the samplers' gradient paths: {', '.join(cfg['grad_paths'])} (the main table, gradient error included: "
+         f"{cfg['grad_paths'][0]}; shared paths correlate the image and its gradient, a bias of the L2 loss that grows with "
+         "the image noise, spec D5; decorrelated paths cost a second resampling pass a step; direct (prb) always uses "
+         "decorrelated paths)."),
     ]
     overview = []
     for name, scene in results["scenes"].items():

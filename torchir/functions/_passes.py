@@ -23,6 +23,7 @@ import mitsuba as mi
 
 from .. import backend
 from ..scene import Scene
+from ..welding import WeldedFaces, moving_meshes
 
 def _primal(mi_scene: mi.Scene, sensor: int, seed: Any, spp: int) -> mi.TensorXf:
     sensor_obj = mi_scene.sensors()[sensor]
@@ -86,11 +87,42 @@ class RenderPasses:
             except Exception as error:  # noqa: BLE001
                 self._unfreeze(error)
                 _clear_grads(params)  # a failed recording may have accumulated part of the gradient
-        _adjoint(self.scene.mi_scene, sensor, grad_out, seed, spp, params)
+        welded = _welded_boundary(self.scene, params)
+        if welded:
+            _split_adjoint(self.scene.mi_scene, sensor, grad_out, seed, spp, params, welded)
+        else:
+            _adjoint(self.scene.mi_scene, sensor, grad_out, seed, spp, params)
 
     def _unfreeze(self, error: Exception) -> None:
         self.frozen = False
         warnings.warn(f"frozen render pass failed ({error!r}); this scene now renders unfrozen", stacklevel=3)
+
+
+def _welded_boundary(scene: Scene, params: dict) -> WeldedFaces | None:
+    """Welded faces for a projective integrator's boundary terms on the moving meshes that repeat
+    positions (uv seams, flat shading: :mod:`torchir.welding`), or None where nothing needs it."""
+    from mitsuba.python.ad.integrators.common import PSIntegrator
+
+    if not isinstance(scene.integrator, PSIntegrator):
+        return None
+    meshes = moving_meshes(scene.mi_scene, params)
+    return WeldedFaces(scene.params, meshes) if meshes else None
+
+
+def _split_adjoint(mi_scene: mi.Scene, sensor: int, grad_out: mi.TensorXf, seed: int, spp: int, params: dict,
+                   welded: WeldedFaces) -> None:
+    """A projective integrator's adjoint in two passes: the interior term on the user's faces,
+    the boundary terms (primary and indirect silhouettes) on ``welded`` faces."""
+    integrator = mi_scene.integrator()
+    saved = integrator.sppc, integrator.sppp, integrator.sppi
+    try:
+        integrator.sppp = integrator.sppi = 0
+        _adjoint(mi_scene, sensor, grad_out, seed, spp, params)
+        integrator.sppc, integrator.sppp, integrator.sppi = 0, saved[1], saved[2]
+        with welded:
+            _adjoint(mi_scene, sensor, grad_out, seed, spp, params)
+    finally:
+        integrator.sppc, integrator.sppp, integrator.sppi = saved
 
 
 def _clear_grads(params: dict) -> None:

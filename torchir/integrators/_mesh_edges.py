@@ -3,51 +3,113 @@
 the test that makes an edge a silhouette from a viewpoint."""
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["EdgeTable", "mesh_edges", "edges_of", "endpoints", "faces_side", "seen_whole"]
+from ..welding import mesh_weld, weld_map
+
+__all__ = ["EdgeTable", "mesh_edges", "edges_of", "endpoints", "faces_side", "seen_whole", "has_open_border",
+           "back_seen_past_border", "mitsuba_silhouettes_wrong"]
 
 
 @dataclass(frozen=True)
 class EdgeTable:
     """A mesh's edges: end vertices ``a``, ``b`` and the third vertex of each adjacent face
-    (``c1``, ``c2``; ``c2 == c1`` for an edge with one face)."""
+    (``c1``, ``c2``; ``c2 == c1`` for an edge with one face); ``crease``: whether the two faces
+    reach an end of the edge through vertices of different normal groups (the shading may jump
+    there: a flat-shaded or hard edge), or None where no groups were given."""
 
     a: np.ndarray
     b: np.ndarray
     c1: np.ndarray
     c2: np.ndarray
+    crease: np.ndarray | None = None
 
 
-def mesh_edges(faces: np.ndarray) -> EdgeTable:
+def mesh_edges(faces: np.ndarray, positions: np.ndarray | None = None, groups: np.ndarray | None = None) -> EdgeTable:
     """Unique edges of a triangle list ``faces`` (F, 3), each with its adjacent faces' third
-    vertices (the first two faces of a non-manifold edge)."""
+    vertices.
+
+    With ``positions`` (V, 3), topology comes from positions, not indices
+    (:func:`torchir.welding.weld_map`): vertices at one position are one, so uv seams, poles and
+    flat-shaded splits are interior edges, and every index in the table is the first vertex at its
+    position. An edge with one face (an open border) has ``c2 == c1``. An edge with more than two
+    faces (non-manifold) keeps the two that bound the smallest wedge around it holding all of
+    them: it outlines the mesh exactly when those two lie on one side of a plane through it; it is
+    dropped when no such wedge is under a half turn (its faces surround it: never an outline).
+    Faces that collapse to a line after welding are skipped. ``groups`` (V,), the normal group of
+    each of the user's vertices (:class:`torchir.welding.MeshWeld`), fills ``crease``.
+    """
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    third: dict[tuple[int, int], list[int]] = {}
-    for a, b, c in faces.tolist():
-        for u, v, w in ((a, b, c), (b, c, a), (c, a, b)):
-            third.setdefault((min(u, v), max(u, v)), []).append(w)
-    keys = list(third)
-    a = np.array([k[0] for k in keys], np.uint32)
-    b = np.array([k[1] for k in keys], np.uint32)
-    c1 = np.array([third[k][0] for k in keys], np.uint32)
-    c2 = np.array([third[k][1] if len(third[k]) > 1 else third[k][0] for k in keys], np.uint32)
-    return EdgeTable(a, b, c1, c2)
+    group = np.asarray(groups, np.int64) if groups is not None else np.arange(int(faces.max(initial=-1)) + 1)
+    welded = faces
+    if positions is not None:
+        rep = weld_map(positions).astype(np.int64)
+        welded = rep[faces]
+        points = np.asarray(positions, np.float64).reshape(-1, 3)
+    # per undirected edge: (third vertex, normal group at its smaller end, at its larger end) of each face
+    sides: dict[tuple[int, int], list[tuple[int, int, int]]] = {}
+    for (a, b, c), (oa, ob, oc) in zip(welded.tolist(), faces.tolist()):
+        if a == b or b == c or c == a:
+            continue
+        for u, v, w, ou, ov in ((a, b, c, oa, ob), (b, c, a, ob, oc), (c, a, b, oc, oa)):
+            gu, gv = int(group[ou]), int(group[ov])
+            sides.setdefault((min(u, v), max(u, v)), []).append((w, gu, gv) if u < v else (w, gv, gu))
+    rows = []
+    for (u, v), faces_here in sides.items():
+        faces_here = list({w: (w, gu, gv) for w, gu, gv in reversed(faces_here)}.values())[::-1]  # a doubled face is one side
+        if len(faces_here) <= 2:
+            pair = (faces_here[0], faces_here[-1])
+        elif positions is not None:
+            bound = _bounding_faces(points[u], points[v], points[[w for w, _, _ in faces_here]])
+            if bound is None:
+                continue
+            pair = (faces_here[bound[0]], faces_here[bound[1]])
+        else:
+            pair = (faces_here[0], faces_here[1])
+        (w1, gu1, gv1), (w2, gu2, gv2) = pair
+        rows.append((u, v, w1, w2, int(gu1 != gu2 or gv1 != gv2)))
+    table = np.array(rows, np.int64).reshape(-1, 5)
+    columns = [np.ascontiguousarray(table[:, k].astype(np.uint32)) for k in range(4)]
+    return EdgeTable(*columns, crease=table[:, 4].astype(bool) if groups is not None else None)
+
+
+def _bounding_faces(a: np.ndarray, b: np.ndarray, thirds: np.ndarray) -> tuple[int, int] | None:
+    """Of faces around the edge ``ab`` with third vertices ``thirds`` (k, 3), the two that bound
+    the smallest wedge holding all of them (the ends of the largest angular gap between them), or
+    None when every gap is under a half turn."""
+    axis = (b - a) / max(np.linalg.norm(b - a), 1e-30)
+    d = thirds - a
+    d = d - np.outer(d @ axis, axis)
+    e1 = d[0] / max(np.linalg.norm(d[0]), 1e-30)
+    e2 = np.cross(axis, e1)
+    angle = np.arctan2(d @ e2, d @ e1) % (2 * np.pi)
+    order = np.argsort(angle)
+    sorted_angles = angle[order]
+    gaps = np.diff(np.concatenate([sorted_angles, sorted_angles[:1] + 2 * np.pi]))
+    widest = int(np.argmax(gaps))
+    if gaps[widest] <= np.pi:
+        return None
+    return int(order[(widest + 1) % len(order)]), int(order[widest])
 
 
 def edges_of(mesh: mi.Mesh) -> EdgeTable:
-    """:func:`mesh_edges` of ``mesh``'s faces, cached by their content."""
-    return _edges_of_faces(np.asarray(mesh.faces_buffer(), np.uint32).tobytes())
+    """:func:`mesh_edges` of ``mesh``'s faces with topology from its positions (as first seen:
+    :func:`torchir.welding.mesh_weld`), cached by the faces' content and the weld."""
+    weld = mesh_weld(mesh)
+    key = (weld.faces.tobytes(), weld.rep.tobytes(), weld.group.tobytes())
+    if key not in _TABLES:
+        if len(_TABLES) >= _TABLES_LIMIT:
+            _TABLES.pop(next(iter(_TABLES)))
+        _TABLES[key] = mesh_edges(weld.faces, np.asarray(dr.detach(mesh.vertex_positions_buffer()), np.float32), weld.group)
+    return _TABLES[key]
 
 
-@functools.lru_cache(maxsize=64)
-def _edges_of_faces(faces_bytes: bytes) -> EdgeTable:
-    return mesh_edges(np.frombuffer(faces_bytes, np.uint32))
+_TABLES: dict[tuple[bytes, bytes, bytes], EdgeTable] = {}  # by faces, weld and normal groups
+_TABLES_LIMIT = 64
 
 
 def endpoints(mesh: mi.Mesh, table: EdgeTable, edge: mi.UInt32 | None = None):
@@ -76,3 +138,46 @@ def seen_whole(sensor: mi.Sensor, meshes: list) -> bool:
     if tuple(film.crop_size()) != tuple(film.size()) or tuple(film.crop_offset()) != (0, 0):
         return False
     return str(sensor).startswith("PerspectiveCamera")
+
+
+def has_open_border(table: EdgeTable) -> bool:
+    """Whether the mesh has an edge with one face (after welding): a real open border."""
+    return bool(np.any(table.c1 == table.c2))
+
+
+def back_seen_past_border(mesh: mi.Mesh, viewpoint: np.ndarray, scene: mi.Scene | None = None) -> bool:
+    """Whether a face along one of ``mesh``'s open borders (after welding) turns its back to
+    ``viewpoint``: where a camera there can see a one-sided material's back side past the border.
+    With ``scene``, only borders that ``viewpoint`` sees unoccluded count (at three points along
+    each such edge)."""
+    weld = mesh_weld(mesh)
+    faces = weld.welded_faces.astype(np.int64)
+    corners = np.concatenate([faces[:, [0, 1, 2]], faces[:, [1, 2, 0]], faces[:, [2, 0, 1]]])  # (edge a, b, third)
+    _, inverse, counts = np.unique(np.sort(corners[:, :2], axis=1), axis=0, return_inverse=True, return_counts=True)
+    border = corners[counts[inverse.ravel()] == 1]
+    if len(border) == 0:
+        return False
+    p = np.asarray(dr.detach(mesh.vertex_positions_buffer()), np.float64).reshape(-1, 3)
+    a, b, c = p[border[:, 0]], p[border[:, 1]], p[border[:, 2]]
+    eye = np.asarray(viewpoint, np.float64).ravel()
+    back = np.einsum("fk,fk->f", np.cross(b - a, c - a), (a + b + c) / 3 - eye) > 0
+    if scene is None or not back.any():
+        return bool(back.any())
+    a, b, c = a[back], b[back], c[back]
+    points = np.concatenate([a + s * (b - a) + 1e-3 * (c - a) for s in (0.25, 0.5, 0.75)])
+    to = mi.Point3f(*points.T.astype(np.float32))
+    origin = mi.Point3f(*np.broadcast_to(eye[:, None], (3, len(points))).astype(np.float32))
+    d = to - origin
+    ray = mi.Ray3f(origin, dr.normalize(d))
+    ray.maxt = dr.norm(d) * (1.0 - 1e-3)
+    return bool(dr.any(~scene.ray_test(ray)))
+
+
+def mitsuba_silhouettes_wrong(mesh: mi.Mesh) -> bool:
+    """Whether Mitsuba's projective primary term is wrong for ``mesh``: on a flat-shaded or
+    hard-edged mesh it misses the creases, where the shading jumps (a cube's pixels: -7.8 against -4.6 by finite
+    differences), and past an open border it shades a one-sided material's back as its front
+    (an open tube's pixels: -5.8 against +1.8); right on smooth closed meshes (a UV sphere, once
+    welded)."""
+    table = edges_of(mesh)
+    return bool(table.crease.any()) or has_open_border(table)

@@ -226,7 +226,8 @@ def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, 
     The members draw the same random numbers; with ``prev`` each combines with its own nearest
     reservoirs, or (``shared``) all with those found for one member drawn at random (Eq. 29).
     Members whose index is in ``seen_from_above`` are shaded as if seen along the shading normal
-    (``si.wi = (0, 0, 1)``; for a silhouette's inside, see :mod:`._silhouettes`). ``candidates``:
+    (``si.wi = (0, 0, 1)``; for a silhouette's inside, see :mod:`._silhouettes`) where the camera
+    sees the front of the face (a one-sided material's back, seen past an open border, stays black). ``candidates``:
     RIS candidates per point (default the integrator's); ``unroll``: see ``_streaming_ris``."""
     w, h = (int(v) for v in sensor_obj.film().crop_size())
     n = dr.width(screen_points[0].x)
@@ -236,8 +237,8 @@ def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, 
             ray, _ = sensor_obj.sample_ray(0.0, 0.0, s * dr.rcp(mi.ScalarVector2f(w, h)), mi.Point2f(0.5))
             hit = scene.ray_intersect_preliminary(ray, coherent=True)
             si = hit.compute_surface_interaction(ray, FORWARD_FLAGS)
-            if len(members) in seen_from_above:
-                si.wi = mi.Vector3f(0.0, 0.0, 1.0)
+            if len(members) in seen_from_above:  # not a back face seen past an open border: it stays unlit
+                si.wi = dr.select(dr.dot(si.n, ray.d) < 0, mi.Vector3f(0.0, 0.0, 1.0), si.wi)
             valid = si.is_valid()
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(dr.opaque(mi.UInt32, light_seed), n)  # the same numbers for every member

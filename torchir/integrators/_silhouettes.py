@@ -40,6 +40,7 @@ from ._mesh_edges import EdgeTable, edges_of, endpoints, faces_side, seen_whole
 __all__ = ["silhouette_backward", "supported"]
 
 SIDE_OFFSET = 1e-3  # pixels between the silhouette and the two shaded points
+CREASE_COSINE = 1e-4  # a flat-shaded edge whose second face leaves the first's plane by more is a shading crease
 VISIBLE_TOLERANCE = 1e-2  # the inside ray's hit must lie this close to xB, relative to its distance
 
 
@@ -90,9 +91,16 @@ def supported(scene: mi.Scene, sensor: mi.Sensor, meshes: list) -> bool:
 
 
 def _silhouette_lengths(mesh, table: EdgeTable, camera: mi.Point3f, project) -> mi.Float:
-    """Projected length (pixels) of each edge on the silhouette seen from ``camera``, else 0."""
+    """Projected length (pixels) of each edge on the silhouette seen from ``camera``, else 0;
+    also of each crease (``table.crease``: a flat-shaded or hard edge, where the shading jumps)
+    whose faces meet at an angle, silhouette or not (where the camera does not see it, its samples
+    are rejected: the inside ray must meet the mesh at the edge)."""
     a, b, c1, c2 = endpoints(mesh, table)
     _, silhouette = faces_side(dr.cross(b - a, a - camera), a, c1, c2)
+    if table.crease is not None and table.crease.any():
+        n1 = dr.normalize(dr.cross(b - a, c1 - a))
+        bent = dr.abs(dr.dot(n1, dr.normalize(c2 - a))) > CREASE_COSINE
+        silhouette |= bent & mi.Bool(table.crease)
     length = dr.norm(project(b) - project(a))
     return dr.select(silhouette & dr.isfinite(length), length, 0.0)
 

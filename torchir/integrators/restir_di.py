@@ -69,10 +69,16 @@
      - 32
    * - ``grad_paths``
      - str
-     - ``shared``: the gradient re-evaluates the primal's paths (paper, Alg. P4);
-       ``decorrelated``: a second resampling pass with ``seed_grad`` against the same
-       previous reservoirs (unbiased for non-linear losses, D5).
-     - shared
+     - ``decorrelated``: a second resampling pass with ``seed_grad`` against the same
+       previous reservoirs (D5); without reuse (B.1, B.2, ``forward_only``) the image and its
+       gradient are then independent, unbiased for any loss. With reuse both passes resample
+       the same previous reservoirs (lane chains: at the same kept camera offsets), so part of
+       the covariance below remains (``tests/test_restir_grad_paths.py``). ``shared``: the
+       gradient re-evaluates the primal's paths (paper, Alg. P4; no second pass), unbiased
+       only for a loss linear in the image: for L2,
+       ``E[2 (I - T) dI] = 2 (E[I] - T) E[dI] + 2 Cov(I, dI)``, so the fit is pulled off the
+       truth in proportion to the image's variance (README, "Gradient paths").
+     - decorrelated
    * - ``forward_only``
      - bool
      - ablation: reuse for the image, plain RIS (``seed_grad``) for the gradient.
@@ -137,11 +143,12 @@ from mitsuba.python.ad.integrators.common import RBIntegrator
 
 from .. import backend
 from ..scene import is_geometry_key
+from ..welding import WeldedFaces, moving_meshes
 from . import _knn, _light_guide, _shadow_edges, _silhouettes
 from ._film import develop
 from ._light import (FORWARD_FLAGS, LightSample, Reservoirs, eval_target, fresh_reservoirs, rebuild_interaction,
                      sample_candidate)
-from ._mesh_edges import edges_of
+from ._mesh_edges import edges_of, mitsuba_silhouettes_wrong
 from ._scene_watch import EmitterWatch, GeometryWatch, as_tuples
 
 __all__ = ["ReSTIRDirectIntegrator", "check_scene", "StepCache"]
@@ -155,7 +162,7 @@ _OPTIONS = {
     "temporal": True,
     "spatial": True,
     "burn_in": 32,
-    "grad_paths": "shared",
+    "grad_paths": "decorrelated",
     "forward_only": False,
     "nn_backend": "auto",
     "target": "shadowed",
@@ -261,7 +268,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     edge_candidates = 1  # whole shadow-edge samples per sample kept, one kept by RIS (see _shadow_edges)
     edge_temporal: bool | str = "auto"  # shadow-edge samples reused across steps (chains; with temporal reuse, not forward_only; auto: see edge_strategy)
     edge_chain_cap = 32.0  # a shadow-edge chain's confidence cap, in candidates
-    silhouette_sampling = False  # primary silhouettes sampled on the moving meshes' edges (_silhouettes; False: direct_projective's)
+    silhouette_sampling: bool | str = "auto"  # primary silhouettes sampled on the moving meshes' edges (_silhouettes; False: direct_projective's; auto: see uses_silhouette_sampling)
     silhouette_candidates = 16  # RIS light candidates on either side of a silhouette sample (bench restir_silhouette)
     moving_geometry_m_cap = 4  # the M cap of temporal reuse after the geometry moved (see sample_paths; 0: m_cap)
 
@@ -317,6 +324,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.freeze = bool(cfg["freeze"])
         self._frozen_pass = None
         self._boundary_integrators: dict[tuple[bool, bool], mi.Integrator] = {}  # direct_projective, by (secondary, primary)
+        self._scene_params: tuple[mi.Scene, Any] | None = None  # (scene, mi.traverse(scene)) of _traversed
         self._edge_guides: dict[str, np.ndarray] = {}  # per mesh, see _shadow_edges.shadow_edge_backward
         self._edge_chains: dict[int, dict[str, Any]] = {}  # per sensor and mesh, likewise
         self._geometry_watch = GeometryWatch()
@@ -882,10 +890,13 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         meshes = _differentiated_meshes(scene, params)
         sensor_obj = scene.sensors()[sensor]
         edges = self.shadow_edge_sampling and _shadow_edges.supported(scene, sensor_obj, meshes)
-        silhouettes = self.silhouette_sampling and _silhouettes.supported(scene, sensor_obj, meshes)
+        silhouettes = self.uses_silhouette_sampling(meshes) and _silhouettes.supported(scene, sensor_obj, meshes)
         if not (edges and silhouettes):
-            self.boundary_integrator(secondary=not edges, primary=not silhouettes).render_backward(
-                scene, params, grad_in, sensor, seed, spp)
+            # Mitsuba's edges come from vertex indices: on meshes that repeat positions (uv seams,
+            # flat shading) its pass runs on welded faces (torchir.welding)
+            with WeldedFaces(self._traversed(scene), moving_meshes(scene, params)):
+                self.boundary_integrator(secondary=not edges, primary=not silhouettes).render_backward(
+                    scene, params, grad_in, sensor, seed, spp)
         w, h = (int(v) for v in sensor_obj.film().crop_size())
         if silhouettes:
             _silhouettes.silhouette_backward(self, scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 11)[0]),
@@ -897,6 +908,22 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]), guides,
                                                self.edge_light_candidates, self.edge_candidates, chains, self.edge_chain_cap,
                                                self.moving_geometry_m_cap if self.moving_geometry_m_cap > 0 else self.edge_chain_cap)
+
+    def uses_silhouette_sampling(self, meshes: list) -> bool:
+        """Whether torchir samples the primary silhouettes of ``meshes`` itself (``silhouette_sampling``;
+        ``"auto"``: where one is flat-shaded or has an open border, which Mitsuba's estimator gets
+        wrong (:func:`mitsuba_silhouettes_wrong`); elsewhere Mitsuba's is right and cheaper)."""
+        if self.silhouette_sampling == "auto":
+            return any(mitsuba_silhouettes_wrong(m) for m in meshes)
+        if not isinstance(self.silhouette_sampling, (bool, np.bool_)):
+            raise ValueError(f"silhouette_sampling must be True, False or 'auto', got {self.silhouette_sampling!r}")
+        return bool(self.silhouette_sampling)
+
+    def _traversed(self, scene: mi.Scene) -> Any:
+        """``mi.traverse(scene)``, kept for the last scene (traversing costs a walk of the scene)."""
+        if self._scene_params is None or self._scene_params[0] is not scene:
+            self._scene_params = (scene, mi.traverse(scene))
+        return self._scene_params[1]
 
     def edge_strategy(self, scene: mi.Scene, meshes: list, samples: int) -> tuple[bool, bool]:
         """(edge chains, guide) for a step's ``samples`` shadow-edge samples on ``meshes``.

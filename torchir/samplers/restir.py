@@ -11,7 +11,8 @@ Presets (one flag for the paper's equal-time comparisons, spec §6.3):
 =================  ====================================================================
 ``preset``         meaning
 =================  ====================================================================
-``"restir"``       the options as given (default: spatiotemporal reuse, shared paths)
+``"restir"``       the options as given (default: spatiotemporal reuse, decorrelated
+                   gradient paths: see ``grad_paths``)
 ``"persistent"``   temporal reuse of each camera sample's own reservoir at a kept shading
                    point: ``spatial=False``, ``offset_lifetime=2048`` unless given, the
                    chain's M capped at 64 x ``candidates``, per-sensor chains. For
@@ -53,10 +54,18 @@ class ReSTIRSampler:
             previous step; neither: plain RIS).
         burn_in: forward-only reuse passes before a sensor's first step (kept offsets without
             spatial reuse, e.g. ``preset="persistent"``: one pass over ``burn_in x candidates``).
-        grad_paths: ``"shared"`` (the paper: the gradient re-evaluates the image's paths, so
-            ``render``'s ``seed_grad``/``spp_grad`` are unused) or ``"decorrelated"`` (a second
-            resampling pass with ``seed_grad``/``spp_grad`` against the same previous
-            reservoirs; removes the image/gradient correlation bias of non-linear losses).
+        grad_paths: ``"decorrelated"`` (the default: a second resampling pass with
+            ``seed_grad``/``spp_grad`` against the same previous reservoirs) or ``"shared"``
+            (the paper: the gradient re-evaluates the image's paths, so ``render``'s
+            ``seed_grad``/``spp_grad`` are unused and the second pass is saved). Shared paths
+            are unbiased only for a loss linear in the image: for L2,
+            ``E[2 (I - T) dI] = 2 (E[I] - T) E[dI] + 2 Cov(I, dI)``, and the covariance term
+            pulls the fit off the truth in proportion to the image's variance, which is largest
+            where light sampling is hard (README, "Gradient paths"). Decorrelated paths remove
+            that term where nothing is reused (``"b1"``, ``"b2"``, ``"forward_only"``); with
+            reuse both passes resample the same previous reservoirs (``"persistent"``: also at
+            the same kept camera offsets), so part of it remains
+            (``tests/test_restir_grad_paths.py``).
         nn_backend: ``"auto"`` (timed) | ``"kdtree"`` (scipy) | ``"grid"`` (Dr.Jit) | ``"screen"``
             (the previous step's samples in the surrounding pixels; a sensor that has not moved).
         seed: mixed into every render seed (0: the render seed is used as is).
@@ -111,7 +120,7 @@ class ReSTIRSampler:
         temporal: bool = True,
         spatial: bool = True,
         burn_in: int = 32,
-        grad_paths: str = "shared",
+        grad_paths: str = "decorrelated",
         nn_backend: str = "auto",
         seed: int = 0,
         normal_threshold: float = 0.9,

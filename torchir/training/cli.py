@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 from lightning.pytorch.callbacks import ModelCheckpoint
-from jsonargparse import lazy_instance
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
@@ -227,7 +226,9 @@ def main(args: list[str] | None = None) -> int:
             ViewDataModule,
             args=args,
             trainer_defaults={
-                "logger": [lazy_instance(CSVLogger, save_dir="results", name="torchir")],
+                # a class_path default, not jsonargparse's lazy_instance: a config without its own
+                # logger got the lazy instance itself ("no attribute '_version'")
+                "logger": [{"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "results", "name": "torchir"}}],
                 "log_every_n_steps": 1,
                 "max_steps": 100,
             },

@@ -10,7 +10,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from ..functions import render
-from ..imageio import COLORSPACES, ENCODED_SUFFIXES, ColorSpace, read_image
+from ..imageio import COLORSPACES, ENCODED_SUFFIXES, ColorSpace, is_lossy, read_image
 
 __all__ = ["ViewDataModule", "ViewDataset", "load_image"]
 
@@ -33,16 +33,22 @@ def _resolve_saturation(saturation: Union[float, str, None], files: Optional[lis
 
 
 class ViewDataset(Dataset):
-    """Item ``i``: ``{"view": sensor index, "target": (C, H, W) image}``."""
+    """Item ``i``: ``{"view": sensor index, "target": (C, H, W) image, "lossy": bool}``.
 
-    def __init__(self, views: list[int], targets: list[torch.Tensor]) -> None:
+    ``lossy``: whether each target was read from a lossy file (JPEG), for
+    :func:`torchir.imageio.clipped_mask` (default: none was)."""
+
+    def __init__(self, views: list[int], targets: list[torch.Tensor], lossy: Optional[list[bool]] = None) -> None:
         self.views, self.targets = views, targets
+        self.lossy = [False] * len(views) if lossy is None else list(lossy)
+        if len(self.lossy) != len(views):
+            raise ValueError(f"lossy has {len(self.lossy)} flag(s) for {len(views)} view(s)")
 
     def __len__(self) -> int:
         return len(self.views)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        return {"view": torch.tensor(self.views[i]), "target": self.targets[i]}
+        return {"view": torch.tensor(self.views[i]), "target": self.targets[i], "lossy": torch.tensor(self.lossy[i])}
 
 
 class ViewDataModule(pl.LightningDataModule):
@@ -62,8 +68,9 @@ class ViewDataModule(pl.LightningDataModule):
             :func:`torchir.imageio.read_image`).
         saturation: radiance at which the targets clipped. A target pixel with any channel
             there (an over-exposed lamp in a photo) only bounds the radiance from below, so it
-            is left out of the loss. ``auto``: 1.0 for 8/16-bit files, none for EXR and
-            synthetic targets.
+            is left out of the loss; in a JPEG target so are the bright pixels next to it that
+            the codec smeared (:func:`torchir.imageio.clipped_mask`). ``auto``: 1.0 for 8/16-bit
+            files, none for EXR and synthetic targets.
         views: sensor indices to fit (default: every sensor of the scene).
         views_per_step: views per optimiser step over all processes (default: all views).
         target_spp: samples per pixel of synthetic targets.
@@ -96,6 +103,7 @@ class ViewDataModule(pl.LightningDataModule):
         self.saturation = _resolve_saturation(saturation, targets)
         self.views: list[int] = []
         self.targets: list[torch.Tensor] = []
+        self.lossy: list[bool] = []  # per entry of views: its target file is lossy (JPEG)
 
     def setup(self, stage: str) -> None:
         if self.targets:
@@ -121,6 +129,7 @@ class ViewDataModule(pl.LightningDataModule):
             self.targets = []
             for v, path in zip(self.views, self.target_files):
                 self.targets.append(self._read_target(path, v, scene))
+            self.lossy = [is_lossy(path) for path in self.target_files]
 
     def _read_target(self, path: str, view: int, scene) -> torch.Tensor:
         """One target file as ``(3, H, W)`` linear radiance, checked against sensor ``view``."""
@@ -152,7 +161,7 @@ class ViewDataModule(pl.LightningDataModule):
             raise ValueError(f"data.views_per_step must be in [1, {len(self.views)}], got {per_step}")
         if per_step % world:
             raise ValueError(f"data.views_per_step ({per_step}) must be divisible by the number of processes ({world})")
-        dataset = ViewDataset(self.views, self.targets)
+        dataset = ViewDataset(self.views, self.targets, self.lossy or None)
         sampler = None
         if world > 1:
             # Each view stays with one process (its rank: position mod world). Lightning's own

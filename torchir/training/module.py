@@ -13,11 +13,11 @@ from .. import Scene
 from ..scene import _unbindable_hint
 from ..functions import render
 from ..derived import declare as declare_derived
+from ..imageio import clipped_mask
 from .parameters import ParameterConfig, SceneParameter, resolve_value
 
 __all__ = ["InverseRenderingModule", "NonFiniteLossError"]
 
-SATURATED = 0.995  # of data.saturation: an 8-bit sRGB 254 decodes to 0.991, so >= 0.995 means 255
 _GOLDEN = 2654435761  # Knuth's multiplicative hash: spreads base seeds far apart
 
 
@@ -303,7 +303,10 @@ class InverseRenderingModule(pl.LightningModule):
                 # E[min(I, s)] < min(E[I], s), and pulls the fit (measured: a lamp of 12 fitted to ~20).
                 # A pixel with any channel at the top code is left out whole: JPEG mixes codes across
                 # channels, so a clipped lamp can read (254, 255, 255) (measured: R fitted to 8 of 12).
-                clipped = (targets >= saturation * SATURATED).any(dim=-3, keepdim=True)
+                # In a JPEG the lamp's edge also decodes below the top code, residuals of ~7 that
+                # dominated the loss: clipped_mask leaves out what the codec smeared too.
+                lossy = batch["lossy"].tolist() if "lossy" in batch else [False] * len(views)
+                clipped = torch.stack([clipped_mask(t, saturation, lossy=flag) for t, flag in zip(targets, lossy)])
                 images = torch.where(clipped, targets, images)
             # of the render itself: a target-aware denoiser's output is pulled towards the target
             image_error = (images.detach() - targets).square().mean()
