@@ -903,23 +903,27 @@ def _gradient_of_step(scene, i, weights, seeds, spp, seed_grad, spp_grad):
 
 
 def test_decorrelated_and_forward_only_passes_are_steps_on_seed_grad(multi):
-    """``decorrelated``: the gradient pass is the step the integrator would have taken with
-    ``seed_grad`` against the same previous reservoirs and camera (replayed frozen, the screen
-    search), so its gradient is that step's ``shared`` one; ``forward_only``: that of plain RIS's
-    step on ``seed_grad``. Under three lights reuse changes the gradient, so both can fail."""
+    """``decorrelated``: the gradient passes are the steps of a chain of their own, on the
+    ``seed_grad`` of each backward (burned in as a first step on the first one would be), never
+    reusing the image's reservoirs: its gradients are the ``shared`` ones of an integrator that
+    stepped on those seeds alone. ``forward_only``: that of plain RIS's step on ``seed_grad``.
+    Under three lights reuse changes the gradient, so both can fail."""
     weights = np.random.default_rng(6).random((RES, RES, 3))
     opts = {"candidates": 2, "neighbors": 2, "burn_in": 1}
     dec = _integrator(grad_paths="decorrelated", **opts)
-    g_dec = _gradient_of_step(multi, dec, weights, (103, 3), 2, 9, 2)
-    assert dec.last_pass_frozen  # the gradient pass: the same view and lane layout as the reservoirs'
-    g_step = _gradient_of_step(multi, _integrator(grad_paths="shared", **opts), weights, (103, 9), 2, 0, 1)
-    np.testing.assert_allclose(g_dec, g_step, rtol=1e-5, atol=1e-7)
+    dec.step(multi, 0, 103, 2)  # an image step without a backward: the gradient chain does not move
+    g_dec = [_gradient_of_step(multi, dec, weights, (s,), 2, g, 2) for s, g in ((3, 9), (4, 11))]
+    chain = _integrator(grad_paths="shared", **opts)
+    g_chain = [_gradient_of_step(multi, chain, weights, (g,), 2, 0, 1) for g in (9, 11)]
+    for a, b in zip(g_dec, g_chain):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    assert dec.grad_states[0].steps == 2 and dec.states[0].steps == 3
     fwd = _integrator(forward_only=True, **opts)
     g_fwd = _gradient_of_step(multi, fwd, weights, (103, 3), 2, 9, 2)
-    assert (fwd.temporal, fwd.spatial) == (True, True)
+    assert (fwd.temporal, fwd.spatial) == (True, True) and not fwd.grad_states
     plain = _integrator(**{**opts, "temporal": False, "spatial": False, "grad_paths": "shared"})
     np.testing.assert_allclose(g_fwd, _gradient_of_step(multi, plain, weights, (9,), 2, 0, 1), rtol=1e-5, atol=1e-7)
-    assert not np.allclose(g_dec, g_fwd, rtol=0.05)  # reuse (the previous reservoirs) changes the gradient
+    assert not np.allclose(g_dec[0], g_fwd, rtol=0.05)  # reuse (the chain's burn-in) changes the gradient
 
 
 # ------------------------------------------------------------------------------ multi-view (Alg. 8)

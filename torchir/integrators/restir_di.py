@@ -69,11 +69,10 @@
      - 32
    * - ``grad_paths``
      - str
-     - ``decorrelated``: a second resampling pass with ``seed_grad`` against the same
-       previous reservoirs (D5); without reuse (B.1, B.2, ``forward_only``) the image and its
-       gradient are then independent, unbiased for any loss. With reuse both passes resample
-       the same previous reservoirs (lane chains: at the same kept camera offsets), so part of
-       the covariance below remains (``tests/test_restir_grad_paths.py``). ``shared``: the
+     - ``decorrelated``: a second resampling pass with ``seed_grad``; with temporal reuse it
+       is a step of the gradient's own chain (reservoirs, kept offsets and guides of earlier
+       gradient passes, burned in like the image's chain; saved with it), so the image and its
+       gradient are independent and the gradient unbiased for any loss. ``shared``: the
        gradient re-evaluates the primal's paths (paper, Alg. P4; no second pass), unbiased
        only for a loss linear in the image: for L2,
        ``E[2 (I - T) dI] = 2 (E[I] - T) E[dI] + 2 Cov(I, dI)``, so the fit is pulled off the
@@ -332,6 +331,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self._geometry_frozen: tuple | None = None  # geometry the frozen pass was recorded with
         self.last_pass_frozen = False
         self.states: dict[int, SensorState] = {}
+        self.grad_states: dict[int, SensorState] = {}  # the gradient's own chains (decorrelated paths)
         self.last: dict[int, StepCache] = {}
         self._last_pass = None
         self.timings: dict[str, float] = {}
@@ -366,16 +366,18 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     def reset(self) -> None:
         """Forget every sensor's reservoirs (the next step burns in again)."""
         self.states.clear()
+        self.grad_states.clear()
         self.last.clear()
         self._edge_guides.clear()
         self._edge_chains.clear()
 
     def state(self, scene: mi.Scene, sensor: int) -> SensorState:
-        sig = _signature(scene)
-        st = self.states.get(sensor)
-        if st is None or st.signature != sig:
-            st = self.states[sensor] = SensorState(signature=sig)
-        return st
+        """The image's chain for ``sensor`` (a fresh one after the scene's topology changed)."""
+        return _chain(self.states, scene, sensor)
+
+    def grad_state(self, scene: mi.Scene, sensor: int) -> SensorState:
+        """The gradient's own chain for ``sensor`` (``grad_paths="decorrelated"`` with reuse)."""
+        return _chain(self.grad_states, scene, sensor)
 
     # ------------------------------------------------------------------ Mitsuba API
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -406,39 +408,49 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         ``zero_remainder``: keep the ``p̂ = 0`` remainder of the gradient (module docstring).
 
         Returns ``(image (H, W, 3) TensorXf, StepCache)``."""
-        carry = self.carries_over(scene)
-        st = self.state(scene, STORE if carry else sensor)
+        st = self.state(scene, STORE if self.carries_over(scene) else sensor)
         t0 = _tic()
-        if st.prev is None and self.temporal and self.burn_in > 0:
-            st.lights = self._emitter_watch(scene)
-            # lane chains resample at one shading point each: their burn-in is one RIS over all of
-            # its passes' candidates (the same reservoirs in distribution, one camera ray and one
-            # pass instead of burn_in; measured at 128², burn-in 32: 2.0 s -> 0.49 s on many_lights)
-            one_pass = self.lane_chains and not carry
-            passes = [1] * self.burn_in
-            if one_pass:  # with light guides, two: the first learns them, the second draws from them
-                learn = max(1, round(self.burn_in * GUIDE_LEARNING_SHARE)) if self.light_guide > 0 else self.burn_in
-                passes = [learn, self.burn_in - learn] if self.burn_in > learn else [self.burn_in]
-            for i, count in enumerate(passes):
-                extra = {"candidates": count * self.candidates} if one_pass else {}
-                burn_seed = int(mi.sample_tea_32(seed, 0x5EED0000 + i)[0])
-                _, st.prev, burn = self.sample_paths(scene, sensor, burn_seed, spp, st.prev, st, st.camera, **extra)
-                st.camera, st.geometry, st.guide = burn.camera, burn.geometry, burn.guide
+        self._burn_in(scene, sensor, seed, spp, st)
         t_burn = _tic() - t0
+        prev_camera = st.camera
+        (ray_weight, image), out, stats, prev = self._advance(scene, sensor, seed, spp, st, zero_remainder)
+        self.timings = {"burn_in": t_burn, **stats.timings}
+        self._last_pass = (out, stats)  # statistics computed on demand (host syncs)
+        return image, StepCache(sensor, spp, out, ray_weight, prev, prev_camera, stats.zero)
+
+    def _burn_in(self, scene: mi.Scene, sensor: int, seed: int, spp: int, st: SensorState) -> None:
+        """Before a chain's first step: ``burn_in`` forward-only reuse passes into ``st``."""
+        if st.prev is not None or not self.temporal or self.burn_in <= 0:
+            return
+        st.lights = self._emitter_watch(scene)
+        # lane chains resample at one shading point each: their burn-in is one RIS over all of
+        # its passes' candidates (the same reservoirs in distribution, one camera ray and one
+        # pass instead of burn_in; measured at 128², burn-in 32: 2.0 s -> 0.49 s on many_lights)
+        one_pass = self.lane_chains and not self.carries_over(scene)
+        passes = [1] * self.burn_in
+        if one_pass:  # with light guides, two: the first learns them, the second draws from them
+            learn = max(1, round(self.burn_in * GUIDE_LEARNING_SHARE)) if self.light_guide > 0 else self.burn_in
+            passes = [learn, self.burn_in - learn] if self.burn_in > learn else [self.burn_in]
+        for i, count in enumerate(passes):
+            extra = {"candidates": count * self.candidates} if one_pass else {}
+            burn_seed = int(mi.sample_tea_32(seed, 0x5EED0000 + i)[0])
+            _, st.prev, burn = self.sample_paths(scene, sensor, burn_seed, spp, st.prev, st, st.camera, **extra)
+            st.camera, st.geometry, st.guide = burn.camera, burn.geometry, burn.guide
+
+    def _advance(self, scene: mi.Scene, sensor: int, seed: int, spp: int, st: SensorState, zero_remainder: bool):
+        """One pass of the chain ``st`` (reusing its last reservoirs) that then holds the pass's
+        reservoirs. Returns ``((ray_weight, image), reservoirs, PassStats, the reservoirs reused)``."""
         lights = self._emitter_watch(scene) if self.temporal else None  # only temporal reuse needs it
-        prev, prev_camera = st.prev, st.camera
+        prev = st.prev
         if prev is not None and not self._emitter_watch.same_support(st.lights, lights):
             prev = None  # a light came on or moved: the old reservoirs cannot hold its samples
-        lanes, out, stats = self.sample_paths(scene, sensor, seed, spp, prev, st, prev_camera, zero_remainder)
-        ray_weight, image = lanes
-        if self.temporal and carry:  # Alg. A8: one store for all views
+        paths, out, stats = self.sample_paths(scene, sensor, seed, spp, prev, st, st.camera, zero_remainder)
+        if self.temporal and self.carries_over(scene):  # Alg. A8: one store for all views
             st.prev, st.camera, st.lights = carry_over(scene, sensor, out, prev), None, lights
         elif self.temporal:
             st.prev, st.camera, st.lights, st.geometry, st.guide = out, stats.camera, lights, stats.geometry, stats.guide
         st.steps += 1
-        self.timings = {"burn_in": t_burn, **stats.timings}
-        self._last_pass = (out, stats)  # statistics computed on demand (host syncs)
-        return image, StepCache(sensor, spp, out, ray_weight, prev, prev_camera, stats.zero)
+        return paths, out, stats, prev
 
     def sample_paths(self, scene: mi.Scene, sensor: int, seed: int, spp: int, prev, st: SensorState,
                      prev_camera: tuple | None = None, zero_remainder: bool = False, candidates: int | None = None):
@@ -843,17 +855,25 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         ``params`` are the grad-enabled values they differentiate.
         """
         t0 = _tic()
-        st = self.state(scene, STORE if self.carries_over(scene) else cache.sensor)
+        key = STORE if self.carries_over(scene) else cache.sensor
         lanes, ray_weight, spp, zero = cache.lanes, cache.ray_weight, cache.spp, cache.zero
-        if self.forward_only or (self.grad_paths == "decorrelated"):
+        if self.forward_only:  # plain RIS with seed_grad
             saved = (self.temporal, self.spatial)
-            if self.forward_only:
-                self.temporal = self.spatial = False
+            self.temporal = self.spatial = False
             try:
                 (ray_weight, _), lanes, stats = self.sample_paths(
-                    scene, cache.sensor, seed_grad, spp_grad, cache.prev, st, cache.prev_camera, zero is not None)
+                    scene, cache.sensor, seed_grad, spp_grad, None, self.state(scene, key), None, zero is not None)
             finally:
                 self.temporal, self.spatial = saved
+            spp, zero = spp_grad, stats.zero
+        elif self.grad_paths == "decorrelated":
+            # the gradient's own chain: reservoirs, kept offsets and guides reused from earlier
+            # gradient passes only, so that nothing the image reused is reused here (resampling
+            # against the image's reservoirs left Cov(I, dI) in the L2 gradient: z = 7.9 and 12
+            # for the spatiotemporal and persistent presets on ajar_painting)
+            gst = self.grad_state(scene, key)  # its burn-in: as a first step on seed_grad would
+            self._burn_in(scene, cache.sensor, seed_grad, spp_grad, gst)
+            (ray_weight, _), lanes, stats, _ = self._advance(scene, cache.sensor, seed_grad, spp_grad, gst, zero is not None)
             spp, zero = spp_grad, stats.zero
         n = dr.width(lanes.valid)
         with dr.resume_grad():
@@ -972,37 +992,18 @@ class ReSTIRDirectIntegrator(RBIntegrator):
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
-        out = {}
-        for sensor, st in self.states.items():
-            out[sensor] = {
-                "radius": st.radius,
-                "window": st.window,
-                "steps": st.steps,
-                "signature": st.signature,
-                "camera": st.camera,
-                "lights": st.lights,
-                "reservoirs": None if st.prev is None else _struct_to_numpy(st.prev),
-                "guide": None if st.guide is None else _struct_to_numpy(st.guide),
-            }
+        out = {sensor: _chain_to_dict(st) for sensor, st in self.states.items()}
+        for sensor, st in self.grad_states.items():  # the gradient's chain beside the image's
+            out.setdefault(sensor, {})["grad_chain"] = _chain_to_dict(st)
         return out
 
     def load_state_dict(self, state: dict) -> None:
         self.reset()
         for sensor, d in state.items():
-            data = d["reservoirs"]
-            if data is not None and "offset" not in data:  # older checkpoints: offsets are redrawn
-                data = {**data, "offset": np.full((len(data["W"]), 2), np.nan, np.float32)}
-            prev = None if data is None else _struct_from_numpy(Reservoirs(), data)
-            camera = d.get("camera")  # absent in older checkpoints: the first step searches in world space
-            self.states[int(sensor)] = SensorState(
-                prev=prev, radius=float(d["radius"]), window=int(d.get("window", 2)), steps=int(d["steps"]),
-                signature=tuple(d["signature"]),
-                camera=None if camera is None else (tuple(camera[0]), *(int(v) for v in camera[1:])),
-                lights=as_tuples(d.get("lights")),  # absent: the first step does not reuse
-                geometry=LOADED,
-                # absent (older checkpoints): relearned
-                guide=None if d.get("guide") is None else _struct_from_numpy(_light_guide.LightGuide, d["guide"]),
-            )
+            if "reservoirs" in d:
+                self.states[int(sensor)] = _chain_from_dict(d)
+            if d.get("grad_chain") is not None:
+                self.grad_states[int(sensor)] = _chain_from_dict(d["grad_chain"])
 
     def to_string(self) -> str:
         return (
@@ -1057,6 +1058,43 @@ def carry_over(scene: mi.Scene, sensor: int, new, store):
 def _visible(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool) -> mi.Bool:
     """True where light vertex ``y`` is unoccluded from ``si`` (False where inactive)."""
     return active & ~scene.ray_test(si.spawn_ray_to(y.p), active)
+
+
+def _chain_to_dict(st: SensorState) -> dict:
+    return {
+        "radius": st.radius,
+        "window": st.window,
+        "steps": st.steps,
+        "signature": st.signature,
+        "camera": st.camera,
+        "lights": st.lights,
+        "reservoirs": None if st.prev is None else _struct_to_numpy(st.prev),
+        "guide": None if st.guide is None else _struct_to_numpy(st.guide),
+    }
+
+
+def _chain_from_dict(d: dict) -> SensorState:
+    data = d["reservoirs"]
+    if data is not None and "offset" not in data:  # older checkpoints: offsets are redrawn
+        data = {**data, "offset": np.full((len(data["W"]), 2), np.nan, np.float32)}
+    camera = d.get("camera")  # absent in older checkpoints: the first step searches in world space
+    return SensorState(
+        prev=None if data is None else _struct_from_numpy(Reservoirs(), data), radius=float(d["radius"]),
+        window=int(d.get("window", 2)), steps=int(d["steps"]), signature=tuple(d["signature"]),
+        camera=None if camera is None else (tuple(camera[0]), *(int(v) for v in camera[1:])),
+        lights=as_tuples(d.get("lights")),  # absent: the first step does not reuse
+        geometry=LOADED,
+        # absent (older checkpoints): relearned
+        guide=None if d.get("guide") is None else _struct_from_numpy(_light_guide.LightGuide, d["guide"]),
+    )
+
+
+def _chain(states: dict[int, SensorState], scene: mi.Scene, sensor: int) -> SensorState:
+    sig = _signature(scene)
+    st = states.get(sensor)
+    if st is None or st.signature != sig:
+        st = states[sensor] = SensorState(signature=sig)
+    return st
 
 
 def _check_int(name: str, value: Any, lo: int) -> int:

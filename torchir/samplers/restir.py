@@ -55,17 +55,16 @@ class ReSTIRSampler:
         burn_in: forward-only reuse passes before a sensor's first step (kept offsets without
             spatial reuse, e.g. ``preset="persistent"``: one pass over ``burn_in x candidates``).
         grad_paths: ``"decorrelated"`` (the default: a second resampling pass with
-            ``seed_grad``/``spp_grad`` against the same previous reservoirs) or ``"shared"``
+            ``seed_grad``/``spp_grad``, with temporal reuse a step of the gradient's own chain,
+            which never reuses what the image reused) or ``"shared"``
             (the paper: the gradient re-evaluates the image's paths, so ``render``'s
             ``seed_grad``/``spp_grad`` are unused and the second pass is saved). Shared paths
             are unbiased only for a loss linear in the image: for L2,
             ``E[2 (I - T) dI] = 2 (E[I] - T) E[dI] + 2 Cov(I, dI)``, and the covariance term
             pulls the fit off the truth in proportion to the image's variance, which is largest
             where light sampling is hard (README, "Gradient paths"). Decorrelated paths remove
-            that term where nothing is reused (``"b1"``, ``"b2"``, ``"forward_only"``); with
-            reuse both passes resample the same previous reservoirs (``"persistent"``: also at
-            the same kept camera offsets), so part of it remains
-            (``tests/test_restir_grad_paths.py``).
+            that term for every preset (``tests/test_restir_grad_paths.py``); with reuse the
+            gradient's chain burns in too, once, at the first backward.
         nn_backend: ``"auto"`` (timed) | ``"kdtree"`` (scipy) | ``"grid"`` (Dr.Jit) | ``"screen"``
             (the previous step's samples in the surrounding pixels; a sensor that has not moved).
         seed: mixed into every render seed (0: the render seed is used as is).
