@@ -202,6 +202,7 @@ def _blocker_at_10_degrees(res: int, **options):
     # sit on a tie, so runs with the same seeds drifted apart (a spread ratio of 2.1 in one
     # process, 1.4 in another).
     threads = dr.thread_count()
+    dr.sync_thread()  # no kernel in flight while the pool is resized
     dr.set_thread_count(1)
     try:
         pose(mi.Float(0.0))
@@ -209,6 +210,7 @@ def _blocker_at_10_degrees(res: int, **options):
         pose(mi.Float(math.radians(10.0)))
         adjoint = mi.TensorXf(2.0 * (mi.render(scene, spp=64, seed=2).array - target.array), target.shape)
         dr.eval(adjoint)
+        dr.sync_thread()
     finally:
         dr.set_thread_count(threads)
     return scene, pose, adjoint, [s for s in scene.shapes() if s.id() == "blocker"]
