@@ -67,6 +67,7 @@ class MeshWeld:
         else:
             self.group = np.arange(len(self.rep), dtype=np.uint32)
         self.merges = bool(np.any(self.group != np.arange(len(self.group))))
+        self.edges: Any = None  # the mesh's edge table, built on first use (integrators._mesh_edges.edges_of)
 
     @property
     def welded(self) -> bool:

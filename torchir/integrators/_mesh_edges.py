@@ -98,18 +98,11 @@ def _bounding_faces(a: np.ndarray, b: np.ndarray, thirds: np.ndarray) -> tuple[i
 
 def edges_of(mesh: mi.Mesh) -> EdgeTable:
     """:func:`mesh_edges` of ``mesh``'s faces with topology from its positions (as first seen:
-    :func:`torchir.welding.mesh_weld`), cached by the faces' content and the weld."""
+    :func:`torchir.welding.mesh_weld`), computed once per weld."""
     weld = mesh_weld(mesh)
-    key = (weld.faces.tobytes(), weld.rep.tobytes(), weld.group.tobytes())
-    if key not in _TABLES:
-        if len(_TABLES) >= _TABLES_LIMIT:
-            _TABLES.pop(next(iter(_TABLES)))
-        _TABLES[key] = mesh_edges(weld.faces, np.asarray(dr.detach(mesh.vertex_positions_buffer()), np.float32), weld.group)
-    return _TABLES[key]
-
-
-_TABLES: dict[tuple[bytes, bytes, bytes], EdgeTable] = {}  # by faces, weld and normal groups
-_TABLES_LIMIT = 64
+    if weld.edges is None:  # kept with the weld: both are fixed once the mesh is first seen
+        weld.edges = mesh_edges(weld.faces, np.asarray(dr.detach(mesh.vertex_positions_buffer()), np.float32), weld.group)
+    return weld.edges
 
 
 def endpoints(mesh: mi.Mesh, table: EdgeTable, edge: mi.UInt32 | None = None):
