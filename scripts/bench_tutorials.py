@@ -358,7 +358,7 @@ def read_torchir_run(task: Task, seed: int, fmt: str, run_dir: Path, wall: float
     import csv
 
     with open(run_dir / "metrics.csv") as f:
-        rows = [r for r in csv.DictReader(f) if r.get("param_error")]
+        rows = [r for r in csv.DictReader(f) if r.get("param_error") and r.get("loss")]  # the steps (not the final row)
     rows.sort(key=lambda r: int(r["step"]))
     result = yaml.safe_load((run_dir / "result.yaml").read_text())
     final = {}

@@ -1,10 +1,31 @@
-"""Shared fixtures: tiny scenes, built once per session so Dr.Jit's kernels are reused."""
+"""Shared fixtures: tiny scenes, built once per session so Dr.Jit's kernels are reused.
+
+Guards that keep every test's outcome independent of the tests before it (any order, any worker):
+
+* each test starts from RNG states fixed by its own id (torch, numpy, ``random``), whatever ran before;
+* a test that changes a shared scene (a session- or module-scoped fixture) fails, naming the
+  scene and the parameters it changed (the next test would otherwise inherit them), and the
+  values a test's renders bound to a shared scene are unbound after it: a grad-enabled value left
+  bound in one test's scene broke another file's forward-mode derivative ("edge ... lies outside
+  of the current dr.isolate_grad() scope": Dr.Jit's virtual calls reach every live scene);
+* after each test module the garbage collector frees its scenes: every virtual call Dr.Jit
+  traces (a BSDF, emitter or shape evaluated through its registry) covers *every* live instance
+  of that class in the process, so the scenes of earlier modules, kept alive by reference cycles,
+  slowed later renders (a 16x16 render 2 ms alone, 17 ms with 60 stale scenes) and changed
+  their kernels (a kernel compiled again after the warm-up: order-dependent failures).
+"""
 from __future__ import annotations
 
 import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads OpenMP (see torchir/__init__.py)
 
+import gc  # noqa: E402
+import hashlib  # noqa: E402
+import random  # noqa: E402
+import zlib  # noqa: E402
+
+import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
@@ -15,11 +36,15 @@ RES = 16  # every render test uses 16x16 so the kernels compile once
 # The longest files (worker seconds, measured), run first so that `-n 2 --dist loadfile` ends
 # with short files on both workers instead of one worker finishing a long file alone. xdist's
 # own reordering (by number of tests per file) is switched off for this in pytest_configure.
+# pytest-randomly (installed with the dev extras) shuffles the files before this stable sort, so
+# the other files and the tests inside every file run in a new order each run
+# (``-p no:randomly`` or ``-p randomly -p "randomly" --randomly-seed=N`` to repeat one).
 LONGEST_FILES_FIRST = (
     "test_restir.py", "test_training_ddp.py", "test_restir_integrator.py", "test_extremes.py",
     "test_bench_restir.py", "test_photo_to_answer.py", "test_functions_pixels.py", "test_training.py",
     "test_training_techniques.py", "test_bench_restir_shadow.py", "test_scenes_restir.py", "test_primary_forms.py",
 )
+SHARED_SCOPES = ("session", "package", "module", "class")
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -32,9 +57,88 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file keeps its order
 
 
+@pytest.fixture(autouse=True)
+def _seeded(request: pytest.FixtureRequest) -> None:
+    """RNG states fixed by the test's id: its random draws do not depend on what ran before it."""
+    seed = zlib.crc32(request.node.nodeid.encode())
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _free_module_scenes():
+    """Collect the module's garbage once it is done, so its scenes leave Dr.Jit's registry."""
+    yield
+    gc.collect()
+
+
+def _shared_scenes(item: pytest.Item) -> dict[str, torchir.Scene]:
+    """The scenes ``item`` gets from fixtures that outlive it (session, module or class scope)."""
+    out = {}
+    defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})
+    for name, value in getattr(item, "funcargs", {}).items():
+        if isinstance(value, torchir.Scene) and name in defs and defs[name][-1].scope in SHARED_SCOPES:
+            out[name] = value
+    return out
+
+
+def _fingerprint(scene: torchir.Scene) -> dict[str, str]:
+    """A digest of each parameter's loaded value (what every render starts from), and of the
+    scene's integrator."""
+    out = {"<integrator>": str(scene.integrator)}
+    for name in scene.params.keys():
+        try:
+            value = scene.get(name)
+        except Exception:  # noqa: BLE001 (a parameter torch cannot hold: not a render's input)
+            continue
+        out[name] = hashlib.sha1(value.numpy().tobytes()).hexdigest()
+    return out
+
+
+_FINGERPRINTS: dict[int, tuple[torchir.Scene, dict[str, str]]] = {}
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_call(item: pytest.Item):
+    """Fail the test that changed a shared scene: the tests after it would inherit the change."""
+    shared = _shared_scenes(item)
+    for scene in shared.values():
+        if id(scene) not in _FINGERPRINTS or _FINGERPRINTS[id(scene)][0] is not scene:
+            _FINGERPRINTS[id(scene)] = (scene, _fingerprint(scene))
+    try:
+        result = yield
+    finally:
+        for scene in shared.values():
+            if scene.bound_names:  # a render's values, grad-enabled ones included: not the next test's
+                scene.bind({})
+    for name, scene in shared.items():
+        before = _FINGERPRINTS[id(scene)][1]
+        after = _fingerprint(scene)
+        if after != before:
+            _FINGERPRINTS[id(scene)] = (scene, after)
+            changed = sorted(k for k in before.keys() | after.keys() if before.get(k) != after.get(k))
+            raise AssertionError(f"this test changed the shared scene {name!r} ({', '.join(changed)}); the tests after it "
+                                 "would inherit the change: work on a copy (e.g. torchir.Scene.builtin(...) of its own)")
+    return result
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _variant() -> str:
-    return torchir.backend.set_variant("auto")
+    variant = torchir.backend.set_variant("auto")
+    _share_cores()
+    return variant
+
+
+def _share_cores() -> None:
+    """Under ``pytest -n N``, each worker's torch gets its share of the cores: N workers each with
+    an OpenMP team as wide as the machine kept their threads waiting on one another (six render
+    test files on 2 cores, ``-n 2``: 85 s with torch's default threads, 62 s with one each).
+    Dr.Jit's pool keeps its size: at one thread Mitsuba's EXR writer waits forever (see
+    torchir.imageio.write_image), and resizing it while kernels run crashed a worker."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
 
 
 @pytest.fixture(scope="session")
@@ -53,8 +157,6 @@ def settled_registry():
     instance in its registry (all scenes' shapes, BSDFs, emitters), so a scene of an earlier
     test freed by the cyclic collector between two calls forces one new recording (seen as a
     random failure in CI). Collect that garbage first, and keep the collector paused."""
-    import gc
-
     gc.collect()
     with torchir.backend.gc_paused():
         yield

@@ -33,6 +33,7 @@ def _finite(x) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x)
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_quick_run_writes_every_output(quick):
     out, results = quick
     assert SUITES["restir"] == "torchir.bench.restir"
@@ -49,6 +50,7 @@ def test_quick_run_writes_every_output(quick):
     assert all(r.count("|") == header.count("|") for r in rows[: len(METHODS) + 1])
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_quick_run_numbers_are_sane(quick):
     _, results = quick
     scene = results["scenes"][QUICK_SCENE]
@@ -77,6 +79,7 @@ def test_quick_run_numbers_are_sane(quick):
     assert rows["direct"]["train_step_ratio_to_direct"] == 1.0 and rows["B.2"]["step_ratio_to_B.2"] == 1.0
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_quick_run_floor_is_below_b2_at_equal_samples(quick):
     """The floor oracle (RIS, 256 shadowed candidates, no reuse) and B.2 (RIS, 8 candidates, no
     reuse) render step i with the same seed, hence the same camera rays: conditioned on them, both
@@ -103,6 +106,7 @@ def test_quick_run_floor_is_below_b2_at_equal_samples(quick):
     assert rows[ORACLE]["floor"] <= rows["B.2"]["relerr_equal_samples"] + 4 * se / (2 * rows["B.2"]["relerr_equal_samples"])
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_quick_run_gain_and_bound_columns_match_the_errors(quick):
     _, results = quick
     scene = results["scenes"][QUICK_SCENE]

@@ -9,6 +9,7 @@ import pytest
 from torchir.bench import SUITES, restir_shadow
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_restir_shadow_runs_at_equal_time_and_writes_its_outputs(tmp_path):
     """Three of the methods (the budget-setting ReSTIR, a sampler without reuse, Mitsuba's own
     integrator without a sampler): every method's sampler is checked below without running it."""

@@ -68,6 +68,7 @@ def test_every_workload_compares_the_four_methods_at_equal_time():
     assert sizes == {"cbox_512": (512, 1), "textured_wall_256": (256, 1), "multiview_16": (128, 16)}
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_quick_run_writes_results_and_plots(tmp_path):
     """A 4-step smoke run of the multi-view workload at 32² (~15 s): every configuration trains."""
     results = scaleup.main(["--quick", "--only", "multiview_16", "--steps", "4", "--out", str(tmp_path)])

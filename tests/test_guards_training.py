@@ -135,3 +135,23 @@ def test_a_minimal_config_without_a_logger_runs(tmp_path, monkeypatch):
     assert cli.main(["fit", "--config", str(config), "--images.exr", "false"]) == 0
     run = tmp_path / "results" / "torchir" / "version_0"
     assert (run / "metrics.csv").is_file() and (run / "result.yaml").is_file()
+
+
+def test_the_console_of_a_run_holds_only_torchir_s_lines(tmp_path):
+    """``torchir fit`` as a user starts it (a fresh process, a minimal YAML): every console line is
+    torchir's progress bar or one of its ``[torchir]`` lines; none of Lightning's info lines ("Seed
+    set", "GPU available", its cloud-logger advertisement), its model table ("Total FLOPs: 0"),
+    LightningCLI's warning about ``args``, or jsonargparse's "Unable to serialize"."""
+    import subprocess
+    import sys
+
+    config = tmp_path / "minimal.yaml"
+    config.write_text("model:\n  scene: cbox\n  resolution: 8\n  spp: 1\n  parameters:\n    red.reflectance.value: {init: 0.5}\n"
+                      "data:\n  target_spp: 4\ntrainer:\n  max_steps: 2\n")
+    out = subprocess.run([sys.executable, "-m", "torchir", "fit", "--config", str(config)], capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    lines = [line.strip() for line in (out.stdout + out.stderr).replace("\r", "\n").splitlines() if line.strip()]
+    foreign = [line for line in lines if not (line.startswith("step ") or line.startswith("[torchir]"))]
+    assert not foreign, foreign
+    assert any(line.startswith("[torchir] finished 2 steps") for line in lines)

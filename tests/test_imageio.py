@@ -313,3 +313,22 @@ def test_is_lossy():
 
     assert is_lossy("a.jpg") and is_lossy("x/b.JPEG")
     assert not any(is_lossy(f) for f in ("a.png", "a.exr", "a.hdr", "a.pfm", "jpg"))
+
+
+def test_exr_files_are_written_and_read_with_a_one_thread_drjit_pool(tmp_path):
+    """Mitsuba's OpenEXR reader and writer never return when Dr.Jit's pool has one thread (as
+    users set it for determinism): torchir widens the pool for the file and restores it. A
+    fresh process, so that resizing the pool cannot disturb this one; the timeout is the failure."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch, drjit as dr, torchir; torchir.backend.set_variant('auto');"
+        "from torchir.imageio import write_image, read_image; dr.set_thread_count(1);"
+        f"x = torch.rand(3, 8, 8); p = write_image({str(tmp_path / 'a.exr')!r}, x);"
+        "y = read_image(p); print(dr.thread_count(), float((y - x).abs().max()))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    threads, error = out.stdout.split()
+    assert threads == "1" and float(error) == 0.0  # the pool as the user set it; the pixels exact (float EXR)

@@ -109,6 +109,7 @@ def test_draws_follow_the_density_the_weights_use(ajar, guide_module):
     assert np.all(np.asarray(empty.density_factor(mi.UInt32(light), u, has_u, sel_weight, mi.Bool(True))) == 1.0)
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_learned_guide_keeps_ris_unbiased_and_cuts_its_variance_behind_the_slit(ajar, guide_module):
     """At one painting point, ``mean(p̂ / q)`` estimates ``∫ p̂`` (the light reaching it,
     visibility included). Lanes that learned from 1024 usual candidates each then draw half

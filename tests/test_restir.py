@@ -959,6 +959,7 @@ def test_mitsuba_registration_and_mi_render(oxalis):
         mi.load_dict({"type": "restir_di", "max_depth": 5})
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_shape_gradient_with_boundary_terms_matches_direct_projective():
     """Stage v2 total: ReSTIR interior term + direct_projective boundary terms (sppc=0) equal
     Mitsuba's full direct_projective gradient for a smooth blob casting a shadow (point lights:

@@ -99,3 +99,15 @@ def test_nn_parameter_azimuth_gets_a_gradient(highlight):
     img = render(highlight, {"light.azimuth": az}, spp=4, seed=8)
     LOILoss(transform="reinhard")(img, target).backward()
     assert az.grad is not None and torch.isfinite(az.grad).all() and az.grad.abs().item() > 0
+
+
+def test_derived_is_reachable_after_a_bare_import_torchir():
+    """The README writes ``torchir.derived.rigid_transform(...)`` after ``import torchir`` alone
+    (it raised AttributeError); a fresh interpreter, as a user's script starts."""
+    import subprocess
+    import sys
+
+    code = "import torchir; print(torchir.derived.rigid_transform.__name__, 'derived' in dir(torchir))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["rigid_transform", "True"]

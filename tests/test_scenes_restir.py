@@ -50,6 +50,7 @@ def _texture_gradient(scene, key, sampler=None):
     return img.detach(), t.grad
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_ajar_painting_closed_door_without_fill_is_exactly_dark():
     scene = torchir.Scene.builtin("ajar_painting", resolution=RES, door=0, fill=0)
     key = "painting.bsdf.reflectance.data"

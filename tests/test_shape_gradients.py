@@ -114,6 +114,7 @@ def _restir_shadow_gradients(scene, key, v0, up, adjoint, n, edges):
     return float(g.mean()), float(g.std()) / n**0.5
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_restir_shadow_edges_on_the_moving_mesh_agree_with_finite_differences():
     """The blocker, seen only through its shadow, moves up. ReSTIR's shape gradient with shadow
     edges sampled on the blocker alone must match finite differences within 4 s.e., and resolve
@@ -270,6 +271,7 @@ def test_light_points_resampled_per_edge_sample_stay_unbiased():
         _shadow_edges.shadow_edge_backward(scene, 0, adjoint, blocker, 16, 0, None, candidates=0)
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_whole_edge_samples_resampled_stay_unbiased_with_less_variance_on_a_crown():
     """RIS over 8 whole edge samples (pair, point, light point; target |adjoint · F|) against one,
     on the lumpy crown blocker (792 edges, a few percent on the light's outline), 32², four kept
@@ -317,6 +319,7 @@ def _chain_gradients(scene, pose, adjoint, blocker, samples: int, chains_count: 
     return np.array(out)
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_temporal_edge_chains_stay_unbiased_on_moving_geometry_with_less_variance():
     """Temporal reuse of whole shadow-edge samples (each slot's sample re-evaluated under the
     moved blocker, one fresh candidate a step, constant MIS weights over floored targets), on

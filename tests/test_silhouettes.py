@@ -131,6 +131,7 @@ def test_smooth_shaded_silhouette_agrees_with_direct_projective(pig_problem):
     assert abs(ours.mean() - theirs.mean()) < 4 * se, (ours.mean(), theirs.mean(), se)
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_reused_light_samples_stay_unbiased(pig_problem):
     """Alg. 5: both sides combined with the reservoirs of an earlier step (the integrator's own,
     at the same pose) against RIS alone, 12 calls each, within 4 s.e."""
@@ -216,6 +217,7 @@ def test_silhouette_arguments_and_support():
     assert not supported(ortho, ortho.sensors()[0], [ortho.shapes()[0]])
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_shape_gradient_through_mitsubas_render_op(pig_problem):
     """``mi.render(..., integrator=restir_di)`` then ``dr.backward``: with a mesh's vertices
     moving, the integrator's backward takes the attached shading points and the boundary terms

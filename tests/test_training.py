@@ -3,11 +3,13 @@ input errors, the NaN guard (multi-view DDP against one process: ``test_training
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 
 import lightning.pytorch as pl
 import pytest
 import torch
+import yaml
 
 from torchir import cli
 from torchir.training import InverseRenderingModule, ParameterConfig, ViewDataModule, load_image
@@ -47,7 +49,13 @@ def test_quickstart_recovers_albedos_and_writes_outputs(tmp_path):
     run = _run_dir(tmp_path)
     rows = list(csv.DictReader(open(run / "metrics.csv")))
     errors = [float(r["param_error"]) for r in rows if r.get("param_error")]
-    assert len(errors) == 40 and errors[-1] < 0.25 * errors[0], (errors[0], errors[-1])
+    assert len(errors) == 41 and errors[-1] < 0.25 * errors[0], (errors[0], errors[-1])  # 40 steps' renders and the final values
+    assert [int(r["step"]) for r in rows][-1] == 40 and not rows[-1].get("loss")
+    result = yaml.safe_load((run / "result.yaml").read_text())
+    assert float(rows[-1]["param_error"]) == pytest.approx(result["param_error"], rel=1e-5)  # the finished run's, not one step stale
+    per_key = {k: float(rows[-1][k]) for k in rows[-1] if k.startswith("param_error/")}
+    assert len(per_key) == 2  # each parameter's own RMSE beside the pooled one
+    assert float(rows[-1]["param_error"]) == pytest.approx(math.sqrt(sum(e * e for e in per_key.values()) / 2), rel=1e-5)
     assert all(float(r["paths_per_step"]) == 16 * 16 * 8 for r in rows if r.get("paths_per_step"))
     for kind in ("target", "initial", "final"):
         image = load_image(run / "images" / f"{kind}_v0.exr")

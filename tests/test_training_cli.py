@@ -69,6 +69,25 @@ def test_split_forms():
     assert sets == [("a.b", "init", 0.3), ("c", "lr", 0.01), ("k", "seed", 3), ("k", "transform", "log"), ("m", None, None)]
 
 
+def test_command_line_paths_are_relative_to_the_working_directory(tmp_path, monkeypatch):
+    """Paths typed on the command line resolve against the shell's folder (a config's own paths
+    against the config's folder, test_resolve_paths): ``--model.scene``, ``--data.targets`` (one
+    path or a list) and image files in ``--set KEY.init/truth``; names and numbers are kept."""
+    import json
+
+    monkeypatch.chdir(tmp_path)
+    here = tmp_path.resolve()
+    argv = ["fit", "--config", "cfg/run.yaml", "--model.scene", "scenes/a.xml", "--data.targets=[t/a.png, t/b.exr]",
+            "--set", "k.init=tex.png", "--set", "k.truth=0.5", "--data.targets", "one.jpg"]
+    rest, sets = split_parameter_sets(argv)
+    assert rest[:4] == ["fit", "--config", "cfg/run.yaml", "--model.scene"]  # the config itself: Lightning's own rule
+    assert rest[4] == str(here / "scenes" / "a.xml")
+    assert rest[5] == "--data.targets" and json.loads(rest[6]) == [str(here / "t" / "a.png"), str(here / "t" / "b.exr")]
+    assert rest[7:] == ["--data.targets", str(here / "one.jpg")]
+    assert sets == [("k", "init", str(here / "tex.png")), ("k", "truth", 0.5)]
+    assert split_parameter_sets(["--model.scene", "cbox"])[0] == ["--model.scene", "cbox"]  # a built-in name
+
+
 def test_split_value_with_equals_sign():
     rest, sets = split_parameter_sets(["--set=k.init=[1, 2]"])
     assert rest == [] and sets == [("k", "init", [1, 2])]
@@ -524,3 +543,16 @@ def test_main_other_errors_propagate(fake_cli):
     with pytest.raises(RuntimeError, match="^boom$"):
         main(["fit", "--set", "k.seed=1"])
     assert fake_cli.parameter_sets == []
+
+
+def test_fit_help_starts_with_torchir_s_own_flags(capsys):
+    """``--set`` and the path rules were nowhere in ``torchir fit --help`` (1,682 lines of
+    LightningCLI's): they come first, then Lightning's help."""
+    from torchir.training.cli import main
+
+    with pytest.raises(SystemExit) as done:
+        main(["fit", "--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("torchir's additions") and "--set KEY.FIELD=VALUE" in out and "--ckpt_path last" in out
+    assert out.index("--set KEY.FIELD=VALUE") < out.index("--trainer CONFIG")  # before Lightning's own

@@ -56,6 +56,7 @@ def test_ddp_two_processes_match_one_process(tmp_path):
         torch.testing.assert_close(ddp[key], single[key], rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_ddp_pixel_sampling_shares_budget_and_stage1(tmp_path):
     """Pixel sampling over 2 processes: the 21-pixel budget and Stage 1 are shared, not repeated
     per process (paths per step summed over processes equal one process's: 11 + 10 draws), and
@@ -81,6 +82,7 @@ def _restir_views_run(tmp_path: Path, multiview: str, *extra: str) -> dict[str, 
     return _latents(_run_dir(tmp_path, "restir") / "checkpoints" / "last.ckpt")
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_ddp_restir_keeps_each_process_s_reservoirs(tmp_path):
     """ReSTIR under DDP: each process keeps the reservoirs of the views it renders. Per-sensor
     chains depend only on (seed, step, view), so 2 processes give one process's trajectory."""

@@ -110,12 +110,25 @@ def test_latent_does_not_alias_the_initial_value():
     assert p.latent.tolist() == [0.25, 0.5]
 
 
-def test_sigmoid_at_its_bounds_stays_finite():
-    """x0 on a bound would give logit = +-inf: the latent is clamped to 1e-4 of the range."""
-    p = _param([2.0, 6.0], transform="sigmoid", bounds=(2, 6))
+def test_sigmoid_init_on_an_end_of_its_range_is_refused():
+    """x0 on a bound is where the sigmoid's slope is ~0 (it was clamped to 1e-4 of the range and
+    barely moved): refused with what to do; just inside, the latent is finite."""
+    with pytest.raises(ValueError, match=r"'obj.value': init has 1 value\(s\) on an end of the sigmoid's range \[2.0, 6.0\] "
+                       r"\(e.g. 6\).*Start inside the range"):
+        _param([2.5, 6.0], transform="sigmoid", bounds=(2, 6))
+    with pytest.raises(ValueError, match="on an end of the sigmoid's range"):
+        _param([0.0], transform="sigmoid")
+    p = _param([2.0 + 1e-3, 6.0 - 1e-3], transform="sigmoid", bounds=(2, 6))
     assert bool(torch.isfinite(p.latent).all())
-    value = p.forward().detach()
-    assert 2.0 < value[0] <= 2.0 + 4 * 1.001e-4 and 6.0 - 4 * 1.001e-4 <= value[1] < 6.0
+    torch.testing.assert_close(p.forward().detach(), torch.tensor([2.001, 5.999]))
+
+
+@pytest.mark.parametrize("lr", [-1.0, 0.0, float("nan"), float("inf")])
+def test_a_learning_rate_that_is_not_positive_and_finite_is_refused(lr):
+    """A negative rate would run gradient ascent without a word."""
+    with pytest.raises(ValueError, match=r"'obj.value': lr must be a finite number > 0 \(gradient descent\)"):
+        _param([0.5], lr=lr)
+    assert _param([0.5], lr=0.01).latent.item() == 0.5  # the control
 
 
 def test_project_clamps_only_bounded_plain_values():
@@ -157,8 +170,7 @@ def test_log_refuses_bounds_and_non_positive_values():
 
 def test_init_outside_bounds_is_refused_with_examples():
     """Bounds are inclusive; the message counts every value outside and shows up to 4."""
-    _param([0.0, 1.0], bounds=(0, 1))
-    _param([0.0, 1.0], bounds=(0, 1), transform="sigmoid")
+    _param([0.0, 1.0], bounds=(0, 1))  # a sigmoid's ends are refused instead (test_sigmoid_init_on_an_end_of_its_range_is_refused)
     bad = [-0.5, 0.2, 1.5, 2.0, 3.0, 4.0, -1.0]
     with pytest.raises(ValueError, match=r"^parameter 'obj.value': init has 6 value\(s\) outside bounds \[0.0, 1.0\] \(e.g. \[-0.5, 1.5, 2.0, 3.0\]\): change init or bounds$"):
         _param(bad, bounds=(0, 1))

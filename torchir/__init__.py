@@ -18,13 +18,22 @@ from . import backend, scenes
 from .scene import ParameterInfo, Scene
 
 __version__ = "0.1.0"
-__all__ = ["backend", "scenes", "Scene", "ParameterInfo", "functions", "testing", "__version__"]
+__all__ = ["backend", "scenes", "Scene", "ParameterInfo", "functions", "testing", "derived", "__version__"]
+
+
+_LAZY = ("functions", "testing", "derived", "modules", "samplers", "imageio", "training", "welding", "extremes",
+         "integrators", "bench")
 
 
 def __getattr__(name: str):
-    # functions/ and testing import Dr.Jit-side modules; load them on first use.
-    if name in ("functions", "testing"):
+    # the subpackages import Dr.Jit-side modules, torch.nn or Lightning: load each on first use, so
+    # that ``torchir.derived.rigid_transform(...)`` works after a bare ``import torchir``
+    if name in _LAZY:
         import importlib
 
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'torchir' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -21,6 +21,8 @@ them out.
 """
 from __future__ import annotations
 
+import contextlib
+
 import math
 import numbers
 from pathlib import Path
@@ -140,7 +142,8 @@ def read_image(path: str | Path, colorspace: ColorSpace = "auto") -> torch.Tenso
         raise FileNotFoundError(f"image not found: {str(path)!r} (resolved to {path.resolve()})")
     _check_suffix(path)
     backend.variant()
-    bitmap = mi.Bitmap(str(path))
+    with _exr_threads(path):
+        bitmap = mi.Bitmap(str(path))
     if colorspace != "auto":
         bitmap.set_srgb_gamma(colorspace == "srgb")
     formats = mi.Bitmap.PixelFormat
@@ -198,8 +201,29 @@ def write_image(path: str | Path, image: torch.Tensor, colorspace: ColorSpace = 
         array = np.rint(array * 255.0).astype(np.uint8)
     bitmap = mi.Bitmap(array, pixel_format)
     bitmap.set_srgb_gamma(srgb)
-    bitmap.write(str(path))
+    with _exr_threads(path):
+        bitmap.write(str(path))
     return path
+
+
+@contextlib.contextmanager
+def _exr_threads(path: Path):
+    """Mitsuba's OpenEXR reader and writer wait forever for a worker when Dr.Jit's pool has one
+    thread (``drjit.set_thread_count(1)``, as users set for determinism: with Mitsuba 3.9.1 and
+    Dr.Jit 1.5, reading or writing a 64x64 EXR never returned). Widen the pool to two for the
+    file, then restore it."""
+    import drjit as dr
+
+    threads = dr.thread_count()
+    if path.suffix.lower() != ".exr" or threads >= 2:
+        yield
+        return
+    dr.sync_thread()
+    dr.set_thread_count(2)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(threads)
 
 
 def _srgb_encode(x: np.ndarray) -> np.ndarray:

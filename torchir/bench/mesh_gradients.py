@@ -17,12 +17,13 @@ motion that keeps the surface closed), with Mitsuba's ``direct`` at ``--ref-spp`
 same seeds on both sides.
 
 The table gives, per mesh and path, the mean over ``--steps`` steps, its z-score against the
-reference (``|mean - ref| / sqrt(se² + se_ref²)``), the rms error of a step and that rms error
-over ``direct_projective``'s (at equal samples per step).
+reference (``|mean - ref| / sqrt(se² + se_ref²)``, the standard error from ``--chains``
+independent runs' means: a run's steps are correlated through its reservoirs), the rms error of a
+step and that rms error over ``direct_projective``'s (at equal samples per step).
 
 Usage:
     python -m torchir.bench.mesh_gradients --quick            # the exported set, 16², 2 paths
-    python -m torchir.bench.mesh_gradients --meshes duck.obj teddy.obj --steps 24
+    python -m torchir.bench.mesh_gradients --meshes duck.obj teddy.obj --chains 8 --steps 8
 
 Writes ``<out>/results.json``, ``<out>/summary.md`` and ``<out>/mesh_gradients.png``.
 """
@@ -173,22 +174,60 @@ class Problem:
             out[name] = (float(np.mean(fd)), float(np.std(fd, ddof=1) / math.sqrt(seeds)))
         return out
 
-    def estimates(self, path: str, steps: int, spp: int, seed: int = 100) -> np.ndarray:
-        """``(steps, 2)`` derivatives (translation, vertex) through ``path``, one step per row."""
+    def estimates(self, path: str, steps: int, spp: int, seed: int = 100, chains: int = 1) -> np.ndarray:
+        """``(chains, steps, 2)`` derivatives (translation, vertex) through ``path``: ``chains``
+        independent runs (each its own sampler, so its own reservoirs, guides and burn-in) of
+        ``steps`` steps each."""
         from torchir.functions import render
         from torchir.samplers import ReSTIRSampler
 
         scene = self.scene(path)
         v0 = scene.get(KEY)
         d_t, d_v = self.directions(self.user_vertex_mask, v0.numel() // 3)
-        sampler = None if path in ("direct_projective", "prb_projective") else ReSTIRSampler(scene, preset=path, seed=seed)
-        out = np.zeros((steps, 2))
-        for i in range(steps):
-            t = torch.zeros(2, requires_grad=True)
-            image = render(scene, {KEY: v0 + t[0] * d_t + t[1] * d_v}, spp=spp, seed=seed + i, sampler=sampler)
-            (image * self.adjoint).sum().backward()
-            out[i] = t.grad.numpy()
+        out = np.zeros((chains, steps, 2))
+        for c in range(chains):
+            start = seed + 1000 * c
+            sampler = None if path in ("direct_projective", "prb_projective") else ReSTIRSampler(scene, preset=path, seed=start)
+            for i in range(steps):
+                t = torch.zeros(2, requires_grad=True)
+                image = render(scene, {KEY: v0 + t[0] * d_t + t[1] * d_v}, spp=spp, seed=start + i, sampler=sampler)
+                (image * self.adjoint).sum().backward()
+                out[c, i] = t.grad.numpy()
         return out
+
+
+def mean_and_se(g: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Mean, standard error and its degrees of freedom of ``g`` (``(chains, steps, k)``, from
+    :meth:`Problem.estimates`). With several chains the error comes from the chains' means: a
+    chain's steps are correlated through its reservoirs and edge chains (on a duck, ReSTIR's six
+    chains of 16 steps had means from -12 to -48 with per-step errors of 2-4, and a lag-one
+    autocorrelation of 0.32), so the per-step formula understated the error 3x and put z at 5.1
+    where the chains' spread gives 0.4. One chain: the per-step formula, right only for paths
+    without state across steps (``direct_projective``, ``prb_projective``)."""
+    chains, steps = g.shape[:2]
+    if chains > 1:
+        means = g.mean(axis=1)
+        return means.mean(axis=0), means.std(axis=0, ddof=1) / math.sqrt(chains), chains - 1
+    flat = g.reshape(steps, -1)
+    return flat.mean(axis=0), flat.std(axis=0, ddof=1) / math.sqrt(steps), steps - 1
+
+
+def z_bound(dof: float, false_rate: float = 1e-4) -> float:
+    """The two-sided Student-t quantile for ``dof`` degrees of freedom whose tail holds
+    ``false_rate``: a mean within that many estimated standard errors of the truth is rejected
+    with probability ``false_rate`` (the standard error itself is an estimate from ``dof + 1``
+    values, so the normal 3.9 would reject far more often with few chains)."""
+    from scipy.stats import t
+
+    return float(t.ppf(1.0 - false_rate / 2.0, dof))
+
+
+def welch_dof(se: float, dof: int, se_ref: float, dof_ref: int) -> float:
+    """Welch-Satterthwaite degrees of freedom of ``sqrt(se² + se_ref²)``, each standard error
+    estimated with its own degrees of freedom."""
+    num = (se**2 + se_ref**2) ** 2
+    den = se**4 / max(dof, 1) + se_ref**4 / max(dof_ref, 1)
+    return float(num / den) if den > 0 else float(max(dof, dof_ref))
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
@@ -196,7 +235,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--meshes", nargs="*", default=None, help="OBJ/PLY files (default: the exported set, as OBJ and PLY)")
     p.add_argument("--paths", default=None, help=f"comma-separated, from {','.join(PATHS)}")
     p.add_argument("--resolution", type=int, default=None)
-    p.add_argument("--steps", type=int, default=None, help="gradient steps per path (the per-step spread)")
+    p.add_argument("--steps", type=int, default=None, help="gradient steps per chain (the per-step spread)")
+    p.add_argument("--chains", type=int, default=None, help="independent runs per path (the standard error comes from their means)")
     p.add_argument("--spp", type=int, default=1)
     p.add_argument("--ref-spp", type=int, default=None)
     p.add_argument("--ref-seeds", type=int, default=8)
@@ -208,7 +248,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     if unknown:
         p.error(f"unknown path(s) {unknown}; choose from {', '.join(PATHS)}")
     a.resolution = a.resolution or (16 if a.quick else 32)
-    a.steps = a.steps or (8 if a.quick else 24)
+    a.steps = a.steps or (4 if a.quick else 8)
+    a.chains = a.chains or (4 if a.quick else 6)
+    if a.chains < 2:
+        p.error("--chains must be >= 2: the standard error comes from the chains' means")
     a.ref_spp = a.ref_spp or (1024 if a.quick else 4096)
     return a
 
@@ -228,22 +271,24 @@ def run(a: argparse.Namespace) -> list[dict[str, Any]]:
         for path_name in a.paths:
             started = time.perf_counter()
             try:
-                g = problem.estimates(path_name, a.steps, a.spp)
+                g = problem.estimates(path_name, a.steps, a.spp, chains=a.chains)
             except ValueError as refused:  # torchir refuses what it cannot differentiate right
                 print(f"[mesh_gradients]   {path_name}: refused ({refused})", flush=True)
                 rows += [{"mesh": problem.name, "repeats": problem.repeats, "path": path_name, "direction": d, "refused": str(refused)}
                          for d in ("translation", "vertex")]
                 continue
-            seconds = (time.perf_counter() - started) / a.steps
+            seconds = (time.perf_counter() - started) / (a.steps * a.chains)
+            means, ses, _ = mean_and_se(g)
+            flat = g.reshape(-1, 2)
             for k, direction in enumerate(("translation", "vertex")):
-                mean, se = float(g[:, k].mean()), float(g[:, k].std(ddof=1) / math.sqrt(a.steps))
+                mean, se = float(means[k]), float(ses[k])
                 r_mean, r_se = ref[direction]
                 rows.append({"mesh": problem.name, "repeats": problem.repeats, "path": path_name, "direction": direction,
                              "mean": mean, "se": se, "reference": r_mean, "reference_se": r_se,
                              "z": abs(mean - r_mean) / math.sqrt(se**2 + r_se**2 + 1e-30),
-                             "rms_error": float(np.sqrt(np.mean((g[:, k] - r_mean) ** 2))), "sd": float(g[:, k].std(ddof=1)),
-                             "seconds_per_step": seconds, "steps": a.steps, "spp": a.spp})
-            print(f"[mesh_gradients]   {path_name}: {g.mean(0).round(3).tolist()} ({seconds:.2f} s/step)", flush=True)
+                             "rms_error": float(np.sqrt(np.mean((flat[:, k] - r_mean) ** 2))), "sd": float(flat[:, k].std(ddof=1)),
+                             "seconds_per_step": seconds, "steps": a.steps, "chains": a.chains, "spp": a.spp})
+            print(f"[mesh_gradients]   {path_name}: {means.round(3).tolist()} ({seconds:.2f} s/step)", flush=True)
     for row in rows:
         base = [r for r in rows if r["mesh"] == row["mesh"] and r["direction"] == row["direction"] and r["path"] == "direct_projective"
                 and "refused" not in r]
@@ -253,7 +298,8 @@ def run(a: argparse.Namespace) -> list[dict[str, Any]]:
 
 
 def summarize(rows: list[dict[str, Any]], a: argparse.Namespace) -> str:
-    lines = [f"## Shape derivatives on exported meshes ({a.resolution}², {a.spp} spp a step, {a.steps} steps; "
+    lines = [f"## Shape derivatives on exported meshes ({a.resolution}², {a.spp} spp a step, {a.chains} chains x {a.steps} steps, "
+             f"standard errors from the chains' means; "
              f"reference: central differences, copies moved together, {a.ref_spp} spp x {a.ref_seeds} seeds)", "",
              "| mesh | repeated vertices | path | direction | mean ± s.e. | reference ± s.e. | z | rms error | x direct_projective's |",
              "|---|---|---|---|---|---|---|---|---|"]

@@ -217,17 +217,21 @@ class StepProgressBar(TQDMProgressBar):
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         bar = self.train_progress_bar
         bar.n = trainer.global_step
-        metrics = pl_module.step_metrics
+        self._show(pl_module.step_metrics)
+
+    def _show(self, metrics: dict) -> None:
         postfix = {}
         if "seconds_per_step" in metrics:
             postfix["s/step"] = f"{float(metrics['seconds_per_step']):.3g}"
         postfix.update({k: f"{float(metrics[k]):.4g}" for k in self.SHOWN if k in metrics})
-        bar.set_postfix(postfix, refresh=False)
-        bar.refresh()
+        self.train_progress_bar.set_postfix(postfix, refresh=False)
+        self.train_progress_bar.refresh()
 
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         pass
 
     def on_train_end(self, trainer, pl_module) -> None:
         if self.train_progress_bar is not None:
+            if hasattr(pl_module, "final_metrics") and pl_module.step_metrics:
+                self._show(pl_module.final_metrics())  # the errors of the values the run ends with
             self.train_progress_bar.close()

@@ -10,8 +10,10 @@ Ctrl-C); earlier runs are never overwritten.
 
 torchir's additions to the command line:
 
-- Relative paths in a config (``model.scene``, ``data.targets``, a derived parameter's
-  ``function`` file) are relative to that config file, not to the working directory.
+- Relative paths in a config (``model.scene``, ``data.targets``, a parameter's image ``init`` or
+  ``truth``, a derived parameter's ``function`` file) are relative to that config file; paths
+  typed on the command line (``--model.scene``, ``--data.targets``, ``--set KEY.init=FILE``) are
+  relative to the working directory, as a shell user expects (``results/`` is written there too).
 - ``--set KEY.FIELD=VALUE`` sets one field of one ``model.parameters`` entry (Mitsuba keys
   contain dots, so ``--model.parameters.<key>.init`` cannot work):
   ``--set 'red.reflectance.value.init=[0.3, 0.3, 0.3]'``. ``--model.parameters '{...}'``
@@ -21,7 +23,9 @@ torchir's additions to the command line:
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
+import logging
 import os
 import sys
 import warnings
@@ -56,10 +60,11 @@ def split_parameter_sets(argv: list[str]) -> tuple[list[str], list[tuple[str, st
     """
     rest, sets = [], []
     i = 0
+    cwd = Path.cwd()
     while i < len(argv):
         arg = argv[i]
         name, eq, inline = arg.partition("=")
-        if name in ("--set", "--model.parameters"):
+        if name in ("--set", "--model.parameters") + COMMAND_LINE_PATHS:
             if eq:
                 value = inline
             elif i + 1 < len(argv):
@@ -68,12 +73,33 @@ def split_parameter_sets(argv: list[str]) -> tuple[list[str], list[tuple[str, st
                 raise ValueError(f"{name} needs a value")
             if name == "--set":
                 sets.append(_one_set(value))
-            else:
+            elif name == "--model.parameters":
                 sets.extend(_map_sets(value))
+            else:  # a path typed here: relative to the working directory, not to the config
+                rest += [name, _paths_from(value, cwd, name == "--model.scene")]
+            sets = [(k, f, _absolute(v, cwd) if f in ("init", "truth") and is_image_file(v) else v) for k, f, v in sets]
         else:
             rest.append(arg)
         i += 1
     return rest, sets
+
+
+COMMAND_LINE_PATHS = ("--model.scene", "--data.targets")
+
+
+def _paths_from(text: str, base: Path, scene: bool) -> str:
+    """A ``--model.scene`` / ``--data.targets`` value with its relative file paths made absolute
+    against ``base`` (a built-in scene's name is kept; a list stays a list)."""
+    import json
+
+    value = _parse_value(text)
+    if scene:
+        return _absolute(text, base) if isinstance(value, str) and text.endswith(".xml") else text
+    if isinstance(value, str):
+        return _absolute(value, base)
+    if isinstance(value, list) and all(isinstance(v, str) for v in value):
+        return json.dumps([_absolute(v, base) for v in value])
+    return text
 
 
 def _one_set(text: str) -> tuple[str, str, Any]:
@@ -121,6 +147,25 @@ def _newest_last_checkpoint(save_dir: str, name: str) -> Path:
 # Lightning 2.6 itself calls APIs that jsonargparse and torch deprecate; users cannot act on it.
 os.environ.setdefault("JSONARGPARSE_DEPRECATION_WARNINGS", "off")
 warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\).*")
+# main() hands LightningCLI the command line without torchir's own flags (--set ...), as ``args``
+warnings.filterwarnings("ignore", message=r".*LightningCLI's args parameter is intended to run from within Python.*")
+# Lightning's and Fabric's info lines ("Seed set to 0", "GPU available: False", an advertisement for
+# its cloud logger): a run's console is torchir's progress bar, warnings and result
+QUIET_LOGGERS = ("lightning.pytorch", "lightning.fabric", "pytorch_lightning", "lightning_fabric")
+
+
+@contextlib.contextmanager
+def _quiet_lightning():
+    """Lightning's loggers at WARNING for the run (their levels restored after it)."""
+    loggers = [logging.getLogger(name) for name in QUIET_LOGGERS]
+    levels = [logger.level for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(max(logger.getEffectiveLevel(), logging.WARNING))
+    try:
+        yield
+    finally:
+        for logger, level in zip(loggers, levels):
+            logger.setLevel(level)
 
 
 def _tensorboard_installed() -> bool:
@@ -213,6 +258,17 @@ class TorchirCLI(LightningCLI):
             print(f"[torchir] finished {trainer.global_step} steps ({summary}); outputs in {model.results_dir}")
 
 
+TORCHIR_HELP = """torchir's additions (the rest is LightningCLI's help, below):
+  --set KEY.FIELD=VALUE   one field of one model.parameters entry, e.g.
+                          --set 'red.reflectance.value.init=[0.3, 0.3, 0.3]' or --set red.reflectance.value.lr=0.05
+                          (FIELD: init, bounds, lr, transform, seed, truth; repeat for more)
+  --model.parameters MAP  merged into the config's map field by field, e.g. --model.parameters '{KEY: {lr: 0.1}}'
+  --ckpt_path last        resume from the newest run's checkpoints/last.ckpt (same logger save_dir/name)
+  paths                   a config's relative paths are relative to the config file; paths typed here
+                          (--model.scene, --data.targets, --set KEY.init=FILE) to the working directory
+"""
+
+
 def main(args: list[str] | None = None) -> int:
     """Run ``fit``/``validate`` through :class:`TorchirCLI`; returns a process exit code."""
     try:
@@ -220,22 +276,11 @@ def main(args: list[str] | None = None) -> int:
     except ValueError as error:  # a command-line error, reported like the parser's own
         print(f"torchir: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None
+    if args[:1] in (["fit"], ["validate"]) and any(a in ("-h", "--help") for a in args[1:]):
+        print(TORCHIR_HELP)
     try:
-        TorchirCLI(
-            InverseRenderingModule,
-            ViewDataModule,
-            args=args,
-            trainer_defaults={
-                # a class_path default, not jsonargparse's lazy_instance: a config without its own
-                # logger got the lazy instance itself ("no attribute '_version'")
-                "logger": [{"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "results", "name": "torchir"}}],
-                "log_every_n_steps": 1,
-                "max_steps": 100,
-            },
-            save_config_kwargs={"overwrite": False},
-            seed_everything_default=0,
-            auto_configure_optimizers=False,
-        )
+        with _quiet_lightning():
+            _run_cli(args)
     except (NonFiniteLossError, FileNotFoundError, KeyError, ValueError, TypeError, AttributeError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"torchir: error: {message}", file=sys.stderr)
@@ -243,3 +288,22 @@ def main(args: list[str] | None = None) -> int:
     finally:
         TorchirCLI.parameter_sets = []
     return 0
+
+
+def _run_cli(args: list[str]) -> None:
+    TorchirCLI(
+        InverseRenderingModule,
+        ViewDataModule,
+        args=args,
+        trainer_defaults={
+            # a class_path default, not jsonargparse's lazy_instance: a config without its own
+            # logger got the lazy instance itself ("no attribute '_version'")
+            "logger": [{"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "results", "name": "torchir"}}],
+            "log_every_n_steps": 1,
+            "max_steps": 100,
+            "enable_model_summary": False,  # a table of nn.Modules with 0 FLOPs: our parameters are in result.yaml
+        },
+        save_config_kwargs={"overwrite": False},
+        seed_everything_default=0,
+        auto_configure_optimizers=False,
+    )

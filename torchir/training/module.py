@@ -103,8 +103,8 @@ class InverseRenderingModule(pl.LightningModule):
         for name, value in counts.items():
             if value < 1:
                 raise ValueError(f"model.{name} must be >= 1, got {value}")
-        if lr <= 0:
-            raise ValueError(f"model.lr must be > 0, got {lr}")
+        if not (isinstance(lr, (int, float)) and 0 < lr < float("inf")):
+            raise ValueError(f"model.lr must be a finite number > 0 (gradient descent), got {lr!r}")
         if lr_half_life is not None and (isinstance(lr_half_life, bool) or not isinstance(lr_half_life, int) or lr_half_life < 1):
             raise ValueError(f"model.lr_half_life must be a number of steps >= 1 (or null), got {lr_half_life!r}")
         self.scene = _load_scene(scene, resolution, dict(scene_options or {}), integrator)
@@ -180,14 +180,49 @@ class InverseRenderingModule(pl.LightningModule):
 
     @torch.no_grad()
     def parameter_error(self, truth: dict[str, torch.Tensor], values: Optional[dict[str, torch.Tensor]] = None) -> Optional[float]:
-        """RMSE over all entries of the parameters with a known truth, or None (``values``: the
-        current :meth:`scene_values`, when already computed)."""
+        """RMSE over all entries of the parameters with a known truth, pooled whatever their
+        units, or None (``values``: the current :meth:`scene_values`, when already computed);
+        :meth:`parameter_errors` gives each parameter's own."""
         if not truth:
             return None
         values = self.scene_values() if values is None else values
         sq = sum(float((values[k] - t.to(values[k])).square().sum()) for k, t in truth.items())
         n = sum(t.numel() for t in truth.values())
         return math.sqrt(sq / n)
+
+    def parameter_errors(self, truth: dict[str, torch.Tensor], values: Optional[dict[str, torch.Tensor]] = None) -> dict[str, float]:
+        """``{key: RMSE of that parameter's entries against its truth}`` (its own units)."""
+        values = self.scene_values() if values is None else values
+        return {k: math.sqrt(float((values[k] - t.to(values[k])).square().mean())) for k, t in truth.items()}
+
+    def error_metrics(self, values: Optional[dict[str, torch.Tensor]] = None) -> dict[str, float]:
+        """``param_error`` (pooled RMSE) and, with several parameters, ``param_error/<key>`` each:
+        the metrics logged for the values ``values`` (default: the current ones)."""
+        truth = self._truth
+        if not truth:
+            return {}
+        values = self.scene_values() if values is None else values
+        out = {"param_error": self.parameter_error(truth, values)}
+        if len(truth) > 1:
+            out.update({f"param_error/{k}": e for k, e in self.parameter_errors(truth, values).items()})
+        return out
+
+    @torch.no_grad()
+    def final_metrics(self) -> dict[str, float]:
+        """The last step's metrics with the parameter errors of the values after its update (a
+        step's own ``param_error`` is of the values it rendered, before its update)."""
+        return {**self.step_metrics, **self.error_metrics()}
+
+    def on_train_end(self) -> None:
+        """Log the errors of the final values as one more row, at the step count (a run of N
+        steps: rows 0 .. N-1 the values each step rendered, row N the values it ends with), and
+        keep them in :attr:`step_metrics` for the ``finished`` line."""
+        final = self.final_metrics()
+        self.step_metrics = final
+        errors = {k: v for k, v in final.items() if k.startswith("param_error")}
+        if errors and self.trainer.world_size == 1 and self.global_step > 0:
+            for logger in self.loggers:
+                logger.log_metrics({**errors, "epoch": float(self.current_epoch)}, step=self.global_step)
 
     # ---------------------------------------------------------------------------- render
     def step_seed(self, step: int, view: int) -> int:
@@ -341,9 +376,7 @@ class InverseRenderingModule(pl.LightningModule):
         metrics["paths_per_step"] = paths
         if self.sampler is not None and hasattr(self.sampler, "diagnostics"):
             metrics.update({f"sampler/{name}": float(value) for name, value in self.sampler.diagnostics().items()})
-        error = self.parameter_error(self._truth, values)
-        if error is not None:
-            metrics["param_error"] = error
+        metrics.update(self.error_metrics(values))
         self.step_metrics = metrics
         self._write_logs_at = self.global_step if self._loggers_write() else None
         distributed = self.trainer.world_size > 1
@@ -393,7 +426,7 @@ class InverseRenderingModule(pl.LightningModule):
 
     def configure_optimizers(self) -> Union[torch.optim.Optimizer, dict[str, Any]]:
         groups = [
-            {"params": [p.latent], "lr": self.configs[key].lr or self.lr, "name": key}
+            {"params": [p.latent], "lr": self.lr if self.configs[key].lr is None else self.configs[key].lr, "name": key}
             for key, p in zip(self.keys, self.scene_parameters)
         ]
         optimizer = torch.optim.SGD(groups, lr=self.lr) if self.optimizer_name == "sgd" else torch.optim.Adam(groups, lr=self.lr)

@@ -100,6 +100,8 @@ class SceneParameter(nn.Module):
             bounds = bounds or (0.0, 1.0)
         elif config.transform == "log" and bounds is not None:
             raise ValueError(f"parameter {key!r}: transform 'log' keeps values positive; drop 'bounds'")
+        if config.lr is not None and not (isinstance(config.lr, (int, float)) and config.lr == config.lr and abs(config.lr) != float("inf") and config.lr > 0):
+            raise ValueError(f"parameter {key!r}: lr must be a finite number > 0 (gradient descent), got {config.lr!r}")
         self.bounds = None if bounds is None else (float(bounds[0]), float(bounds[1]))
         if self.bounds is not None:
             lo, hi = self.bounds
@@ -110,6 +112,15 @@ class SceneParameter(nn.Module):
                     f"parameter {key!r}: init has {int(outside.sum())} value(s) outside bounds [{lo}, {hi}] "
                     f"(e.g. {[round(b, 6) for b in bad]}): change init or bounds"
                 )
+            if config.transform == "sigmoid":
+                on_end = (initial <= lo) | (initial >= hi)
+                if bool(on_end.any()):
+                    raise ValueError(
+                        f"parameter {key!r}: init has {int(on_end.sum())} value(s) on an end of the sigmoid's range "
+                        f"[{lo}, {hi}] (e.g. {initial[on_end].flatten()[0].item():g}), which the sigmoid only reaches at "
+                        "infinity: its slope there is ~0 and the parameter would barely move. Start inside the range "
+                        "(e.g. its middle), widen bounds, or use transform: none with bounds"
+                    )
         self.latent = nn.Parameter(self._inverse(initial.float()))
 
     def _inverse(self, x: torch.Tensor) -> torch.Tensor:
