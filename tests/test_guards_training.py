@@ -155,3 +155,33 @@ def test_the_console_of_a_run_holds_only_torchir_s_lines(tmp_path):
     foreign = [line for line in lines if not (line.startswith("step ") or line.startswith("[torchir]"))]
     assert not foreign, foreign
     assert any(line.startswith("[torchir] finished 2 steps") for line in lines)
+
+
+def test_a_scene_built_by_a_python_factory_runs(tmp_path, monkeypatch):
+    """Mitsuba's tutorials build scenes as dicts in Python: ``model.scene: file.py:function``
+    (relative to the config) is called with ``scene_options`` and ``resolution``; a factory that
+    returns something else is refused with its name."""
+    (tmp_path / "my_scenes.py").write_text(
+        "import mitsuba as mi\n\n"
+        "def box(resolution=8, red=0.6):\n"
+        "    scene = mi.cornell_box()\n"
+        "    scene['sensor']['film']['width'] = scene['sensor']['film']['height'] = resolution\n"
+        "    scene['red']['reflectance']['value'] = [red, 0.1, 0.1]\n"
+        "    return scene\n\n"
+        "def broken(**_):\n"
+        "    return 'not a scene'\n"
+    )
+    config = tmp_path / "factory.yaml"
+    config.write_text("model:\n  scene: my_scenes.py:box\n  resolution: 8\n  scene_options: {red: 0.7}\n  spp: 1\n"
+                      "  parameters:\n    red.reflectance.value: {init: 0.3}\n"
+                      "data:\n  target_spp: 4\ntrainer:\n  max_steps: 2\n  enable_progress_bar: false\n")
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["fit", "--config", str(config), "--images.exr", "false"]) == 0
+    run = tmp_path / "results" / "torchir" / "version_0"
+    assert (run / "result.yaml").is_file()
+    model = InverseRenderingModule(scene=f"{tmp_path / 'my_scenes.py'}:box", resolution=8, scene_options={"red": 0.7},
+                                   parameters={"red.reflectance.value": {"init": 0.3}})
+    assert model.scene.resolution == (8, 8)
+    torch.testing.assert_close(model.scene.get("red.reflectance.value"), torch.tensor([0.7, 0.1, 0.1]))  # the options reached it
+    with pytest.raises(ValueError, match=r"my_scenes.py:broken' must return a Mitsuba scene dict .*got str"):
+        InverseRenderingModule(scene=f"{tmp_path / 'my_scenes.py'}:broken", parameters={"red.reflectance.value": {}})

@@ -111,6 +111,14 @@ def test_alpha_and_grey(tmp_path):
         read_image(tmp_path / "transparent.exr")
     grey = read_image(write_image(tmp_path / "grey.png", torch.full((1, 4, 4), 0.5)))
     assert grey.shape == (1, 4, 4) and grey.sub(0.5).abs().max() <= _bound(8)
+    # channels=3: a target for an RGB render instead of a (1, H, W) image that broadcasts silently
+    as_rgb = read_image(tmp_path / "grey.png", channels=3)
+    assert as_rgb.shape == (3, 4, 4) and torch.equal(as_rgb, grey.expand(3, 4, 4))
+    assert read_image(tmp_path / "opaque.exr", channels=3).shape == (3, 4, 4)  # colour files unchanged
+    with pytest.raises(ValueError, match="has 3 colour channels; channels=1 asks for a greyscale image"):
+        read_image(tmp_path / "opaque.exr", channels=1)
+    with pytest.raises(ValueError, match="channels must be None, 1 or 3, got 2"):
+        read_image(tmp_path / "grey.png", channels=2)
 
 
 def test_bad_input(tmp_path):

@@ -121,13 +121,16 @@ def clipped_mask(image: torch.Tensor, saturation: float = 1.0, lossy: bool = Fal
     return clipped | (near & (brightest >= saturation * LOSSY_FLOOR))
 
 
-def read_image(path: str | Path, colorspace: ColorSpace = "auto") -> torch.Tensor:
+def read_image(path: str | Path, colorspace: ColorSpace = "auto", channels: int | None = None) -> torch.Tensor:
     """Read an image file as linear radiance, ``(C, H, W)`` float32 with ``C`` in {1, 3}.
 
     Args:
         path: an EXR/HDR/PFM (linear) or PNG/JPEG (8/16-bit, sRGB-encoded) file.
         colorspace: ``"auto"`` (the file's own encoding, table above), ``"srgb"`` (undo the
             sRGB curve whatever the file says) or ``"linear"`` (take the stored values as is).
+        channels: ``None``: as stored (a greyscale file gives ``C = 1``, which broadcasts
+            silently against a ``(3, H, W)`` render in a loss); ``3``: a greyscale file's channel
+            repeated, as a target for an RGB render; ``1``: refuses a colour file.
 
     An alpha channel is dropped when it is fully opaque and refused otherwise (torchir
     compares radiance; a transparent pixel has none to compare).
@@ -162,6 +165,12 @@ def read_image(path: str | Path, colorspace: ColorSpace = "auto") -> torch.Tenso
                 f"torchir needs radiance everywhere: flatten it onto a background and save it without alpha"
             )
         array = array[..., :-1]
+    if channels not in (None, 1, 3):
+        raise ValueError(f"channels must be None, 1 or 3, got {channels!r}")
+    if channels == 1 and array.shape[-1] != 1:
+        raise ValueError(f"{str(path)!r} has {array.shape[-1]} colour channels; channels=1 asks for a greyscale image")
+    if channels == 3 and array.shape[-1] == 1:
+        array = np.repeat(array, 3, axis=-1)
     return torch.from_numpy(np.ascontiguousarray(array)).permute(2, 0, 1).contiguous()
 
 

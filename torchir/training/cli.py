@@ -94,6 +94,9 @@ def _paths_from(text: str, base: Path, scene: bool) -> str:
 
     value = _parse_value(text)
     if scene:
+        if isinstance(value, str) and ".py:" in text:
+            file, attr = text.rsplit(":", 1)
+            return f"{_absolute(file, base)}:{attr}"
         return _absolute(text, base) if isinstance(value, str) and text.endswith(".xml") else text
     if isinstance(value, str):
         return _absolute(value, base)
@@ -197,6 +200,9 @@ class TorchirCLI(LightningCLI):
         model, data = config.model, config.data
         if isinstance(model.scene, str) and model.scene.endswith(".xml"):
             model.scene = _absolute(model.scene, base)
+        elif isinstance(model.scene, str) and ".py:" in model.scene:  # a factory file beside the config
+            file, attr = model.scene.rsplit(":", 1)
+            model.scene = f"{_absolute(file, base)}:{attr}"
         if data.targets:
             data.targets = [_absolute(str(t), base) for t in data.targets]
         for entry in (model.parameters or {}).values():

@@ -1,11 +1,13 @@
 """InverseRenderingModule: a LightningModule that recovers scene parameters from images."""
 from __future__ import annotations
 
+import csv
 import math
 from pathlib import Path
 from typing import Any, Literal, Optional, Union
 
 import lightning.pytorch as pl
+from lightning.pytorch.loggers import CSVLogger
 import torch
 from torch import nn
 
@@ -30,7 +32,30 @@ def _load_scene(scene: str, resolution, scene_options: dict[str, Any], integrato
         if resolution is not None:
             raise ValueError("resolution applies to built-in scenes; set the film size in the XML file instead")
         return Scene.from_file(scene, override_integrator=integrator, **scene_options)
+    if ":" in scene:  # a Python factory, as Mitsuba's tutorials build scenes: "file.py:fn" or "module:fn"
+        return _scene_from_factory(scene, resolution, scene_options, integrator)
     return Scene.builtin(scene, resolution=resolution, override_integrator=integrator, **scene_options)
+
+
+def _scene_from_factory(spec: str, resolution, scene_options: dict[str, Any], integrator: Optional[dict[str, Any]]) -> Scene:
+    """``factory(**scene_options)`` (plus ``resolution=`` when given) -> a Mitsuba scene dict."""
+    from ..derived import load_callable
+
+    factory = load_callable(spec)
+    if not callable(factory):
+        raise TypeError(f"model.scene {spec!r} is not callable")
+    kwargs = dict(scene_options)
+    if resolution is not None:
+        kwargs["resolution"] = resolution
+    try:
+        scene_dict = factory(**kwargs)
+    except TypeError as error:
+        raise TypeError(f"model.scene {spec!r} could not be called with {sorted(kwargs)} (scene_options"
+                        f"{' and resolution' if resolution is not None else ''}): {error}") from None
+    if not isinstance(scene_dict, dict) or scene_dict.get("type") != "scene":
+        raise ValueError(f"model.scene {spec!r} must return a Mitsuba scene dict ({{'type': 'scene', ...}}), "
+                         f"got {type(scene_dict).__name__}")
+    return Scene.from_dict(scene_dict, override_integrator=integrator)
 
 
 class InverseRenderingModule(pl.LightningModule):
@@ -42,7 +67,9 @@ class InverseRenderingModule(pl.LightningModule):
     optimised quantities are ``nn.Parameter``\\ s (one :class:`SceneParameter` per Mitsuba key).
 
     Args:
-        scene: a built-in scene name (``torchir.scenes.available()``) or a Mitsuba ``.xml`` path.
+        scene: a built-in scene name (``torchir.scenes.available()``), a Mitsuba ``.xml`` path, or
+            a Python factory ``"file.py:function"`` / ``"package.module:function"`` returning a
+            Mitsuba scene dict, called with ``scene_options`` (and ``resolution=`` when given).
         resolution: film size of a built-in scene, ``H`` or ``[H, W]``.
         scene_options: builder options of a built-in scene, or ``$``-substitutions of an XML file.
         integrator: ``{type: name, **properties}`` replacing the scene's integrator, so that a run
@@ -409,6 +436,23 @@ class InverseRenderingModule(pl.LightningModule):
         from ..modules import L2Loss
 
         return type(self.loss_fn) is L2Loss and getattr(self.loss_fn, "reduction", "mean") == "mean" and self.denoiser is None
+
+    def on_train_start(self) -> None:
+        """A resumed run keeps one history: the rows of the checkpoint's own ``metrics.csv``
+        before the resume step lead this run's ``metrics.csv`` (the curves come back with the
+        checkpoint already), so the new run folder holds the whole run from step 0."""
+        ckpt = getattr(self.trainer, "ckpt_path", None)
+        if not ckpt or not self.trainer.is_global_zero or self.global_step == 0:
+            return
+        earlier = Path(ckpt).resolve().parent.parent / "metrics.csv"
+        if not earlier.is_file():
+            return
+        with open(earlier, newline="") as f:
+            rows = [r for r in csv.DictReader(f) if r.get("step") and int(float(r["step"])) < self.global_step]
+        history = [{k: (int(float(v)) if k == "step" else float(v)) for k, v in r.items() if v not in ("", None)} for r in rows]
+        for logger in self.loggers:
+            if isinstance(logger, CSVLogger) and Path(logger.log_dir).resolve() != earlier.parent:
+                logger.experiment.metrics[:0] = history
 
     def setup(self, stage: str) -> None:
         datamodule = getattr(self.trainer, "datamodule", None)
