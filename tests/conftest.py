@@ -33,16 +33,16 @@ import torchir
 
 RES = 16  # every render test uses 16x16 so the kernels compile once
 
-# The longest files (worker seconds, measured), run first so that `-n 2 --dist loadfile` ends
-# with short files on both workers instead of one worker finishing a long file alone. xdist's
-# own reordering (by number of tests per file) is switched off for this in pytest_configure.
-# pytest-randomly (installed with the dev extras) shuffles the files before this stable sort, so
-# the other files and the tests inside every file run in a new order each run
-# (``-p no:randomly`` or ``-p randomly -p "randomly" --randomly-seed=N`` to repeat one).
+# The longest files (worker seconds, measured with the slow tests left out), run first so that
+# `-n 2 --dist loadfile` ends with short files on both workers instead of one worker finishing a
+# long file alone. xdist's own reordering (by number of tests per file) is switched off for this
+# in pytest_configure. pytest-randomly (installed with the dev extras) shuffles files and tests
+# before this stable sort, so the other files, and the tests inside every file, run in a new order
+# each run (``--randomly-seed=N`` repeats an order; ``-p no:randomly`` keeps the files' own).
 LONGEST_FILES_FIRST = (
-    "test_restir.py", "test_training_ddp.py", "test_restir_integrator.py", "test_extremes.py",
-    "test_bench_restir.py", "test_photo_to_answer.py", "test_functions_pixels.py", "test_training.py",
-    "test_training_techniques.py", "test_bench_restir_shadow.py", "test_scenes_restir.py", "test_primary_forms.py",
+    "test_restir.py", "test_restir_integrator.py", "test_mesh_gradients.py", "test_shape_gradients.py", "test_extremes.py",
+    "test_primary_forms.py", "test_restir_grad_paths.py", "test_training.py", "test_photo_to_answer.py",
+    "test_functions_pixels.py", "test_training_techniques.py", "test_silhouettes.py", "test_training_ddp.py",
 )
 SHARED_SCOPES = ("session", "package", "module", "class")
 
@@ -54,7 +54,7 @@ def pytest_configure(config: pytest.Config) -> None:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     rank = {name: i for i, name in enumerate(LONGEST_FILES_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file keeps its order
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the tests in a file keep their (shuffled) order
 
 
 @pytest.fixture(autouse=True)

@@ -270,7 +270,8 @@ def test_results_in_own_units_last_checkpoint_export_and_resume(tmp_path, capsys
     # --ckpt_path last resumes the newest run from step 7
     assert _run(tmp_path, QUICKSTART, *overrides, "--trainer.max_steps", "9", "--ckpt_path", "last") == 0
     assert "resuming from" in capsys.readouterr().out
-    assert [int(r["step"]) for r in _metrics(tmp_path / "quickstart" / "version_1") if r.get("loss")] == [7, 8]
+    # a new folder with the whole run's history: the first run's steps 0-6, then its own 7 and 8
+    assert [int(r["step"]) for r in _metrics(tmp_path / "quickstart" / "version_1") if r.get("loss")] == list(range(9))
 
 
 def test_ckpt_path_last_without_a_run_says_so(tmp_path, capsys):

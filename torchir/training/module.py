@@ -213,14 +213,14 @@ class InverseRenderingModule(pl.LightningModule):
         if not truth:
             return None
         values = self.scene_values() if values is None else values
-        sq = sum(float((values[k] - t.to(values[k])).square().sum()) for k, t in truth.items())
+        sq = sum(float((values[k].detach() - t.to(values[k])).square().sum()) for k, t in truth.items())
         n = sum(t.numel() for t in truth.values())
         return math.sqrt(sq / n)
 
     def parameter_errors(self, truth: dict[str, torch.Tensor], values: Optional[dict[str, torch.Tensor]] = None) -> dict[str, float]:
         """``{key: RMSE of that parameter's entries against its truth}`` (its own units)."""
         values = self.scene_values() if values is None else values
-        return {k: math.sqrt(float((values[k] - t.to(values[k])).square().mean())) for k, t in truth.items()}
+        return {k: math.sqrt(float((values[k].detach() - t.to(values[k])).square().mean())) for k, t in truth.items()}
 
     def error_metrics(self, values: Optional[dict[str, torch.Tensor]] = None) -> dict[str, float]:
         """``param_error`` (pooled RMSE) and, with several parameters, ``param_error/<key>`` each:
