@@ -156,7 +156,14 @@ def settled_registry():
     """For tests that count a frozen function's recordings: Dr.Jit keys a recording on every
     instance in its registry (all scenes' shapes, BSDFs, emitters), so a scene of an earlier
     test freed by the cyclic collector between two calls forces one new recording (seen as a
-    random failure in CI). Collect that garbage first, and keep the collector paused."""
+    random failure in CI). Collect that garbage first, and keep the collector paused. Pending
+    Dr.Jit work of earlier tests (unevaluated variables that hold a scene's objects) is evaluated
+    between two collections, so that it releases what it holds before the count starts."""
+    import drjit as dr
+
+    gc.collect()
+    dr.eval()
+    dr.sync_thread()
     gc.collect()
     with torchir.backend.gc_paused():
         yield
