@@ -77,11 +77,10 @@ def split_parameter_sets(argv: list[str]) -> tuple[list[str], list[tuple[str, st
                 sets.extend(_map_sets(value))
             else:  # a path typed here: relative to the working directory, not to the config
                 rest += [name, _paths_from(value, cwd, name == "--model.scene")]
-            sets = [(k, f, _absolute(v, cwd) if f in ("init", "truth") and is_image_file(v) else v) for k, f, v in sets]
         else:
             rest.append(arg)
         i += 1
-    return rest, sets
+    return rest, [(k, f, _absolute(v, cwd) if f in ("init", "truth") and is_image_file(v) else v) for k, f, v in sets]
 
 
 COMMAND_LINE_PATHS = ("--model.scene", "--data.targets")
@@ -95,8 +94,7 @@ def _paths_from(text: str, base: Path, scene: bool) -> str:
     value = _parse_value(text)
     if scene:
         if isinstance(value, str) and ".py:" in text:
-            file, attr = text.rsplit(":", 1)
-            return f"{_absolute(file, base)}:{attr}"
+            return _absolute_callable(text, base)
         return _absolute(text, base) if isinstance(value, str) and text.endswith(".xml") else text
     if isinstance(value, str):
         return _absolute(value, base)
@@ -136,6 +134,12 @@ def _map_sets(text: str) -> list[tuple[str, str, Any]]:
 
 def _absolute(path: str, base: Path) -> str:
     return path if Path(path).is_absolute() else str((base / path).resolve())
+
+
+def _absolute_callable(spec: str, base: Path) -> str:
+    """``"file.py:attr"`` with the file made absolute against ``base``."""
+    file, attr = spec.rsplit(":", 1)
+    return f"{_absolute(file, base)}:{attr}"
 
 
 def _newest_last_checkpoint(save_dir: str, name: str) -> Path:
@@ -201,8 +205,7 @@ class TorchirCLI(LightningCLI):
         if isinstance(model.scene, str) and model.scene.endswith(".xml"):
             model.scene = _absolute(model.scene, base)
         elif isinstance(model.scene, str) and ".py:" in model.scene:  # a factory file beside the config
-            file, attr = model.scene.rsplit(":", 1)
-            model.scene = f"{_absolute(file, base)}:{attr}"
+            model.scene = _absolute_callable(model.scene, base)
         if data.targets:
             data.targets = [_absolute(str(t), base) for t in data.targets]
         for entry in (model.parameters or {}).values():
@@ -216,8 +219,7 @@ class TorchirCLI(LightningCLI):
         for spec in (model.derived or {}).values():
             function = spec.get("function") if isinstance(spec, dict) else None
             if isinstance(function, str) and ".py:" in function:
-                file, attr = function.rsplit(":", 1)
-                spec["function"] = f"{_absolute(file, base)}:{attr}"
+                spec["function"] = _absolute_callable(function, base)
 
     def _merge_parameter_sets(self, config) -> None:
         from jsonargparse import Namespace
