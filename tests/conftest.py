@@ -23,6 +23,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads OpenMP
 import gc  # noqa: E402
 import hashlib  # noqa: E402
 import random  # noqa: E402
+import re  # noqa: E402
 import zlib  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -45,6 +46,7 @@ LONGEST_FILES_FIRST = (
     "test_functions_pixels.py", "test_training_techniques.py", "test_silhouettes.py", "test_training_ddp.py",
 )
 SHARED_SCOPES = ("session", "package", "module", "class")
+_LITERAL = re.compile(r"\b(half|float|double|i1|i8|i16|i32|i64) (-?0x[0-9A-Fa-f]+|-?[0-9][0-9.e+-]*)")
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -55,6 +57,52 @@ def pytest_configure(config: pytest.Config) -> None:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     rank = {name: i for i, name in enumerate(LONGEST_FILES_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the tests in a file keep their (shuffled) order
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem):
+    """With ``TORCHIR_TEST_PROFILE=DIR``: one JSON line per test (setup, call and teardown) in
+    DIR/<worker>.jsonl with its wall time and the Dr.Jit kernels it compiled, loaded from disk
+    and ran, to see where the suite's time goes (``python3 scripts/test_profile.py DIR``)."""
+    folder = os.environ.get("TORCHIR_TEST_PROFILE")
+    if not folder:
+        return (yield)
+    import json
+    import time
+
+    import drjit as dr
+
+    dr.sync_thread()
+    dr.kernel_history()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    start = time.perf_counter()
+    try:
+        return (yield)
+    finally:
+        dr.sync_thread()
+        row = {"test": item.nodeid, "wall_s": time.perf_counter() - start, "compiled": 0, "compile_s": 0.0,
+               "disk_loads": 0, "launched": 0, "execution_s": 0.0}
+        for entry in dr.kernel_history():
+            row["launched"] += 1
+            row["execution_s"] += float(entry.get("execution_time", 0.0)) * 1e-3
+            if not entry.get("cache_hit", 0) and "ir" in entry:  # a frozen function's replays hold no IR
+                seconds = (float(entry.get("codegen_time", 0.0)) + float(entry.get("backend_time", 0.0))) * 1e-3
+                row["compiled"] += 1
+                row["compile_s"] += seconds
+                # the kernel's IR with its constants blanked: kernels that differ only in literals share it
+                shape = _LITERAL.sub(r"\1 _", entry["ir"].getvalue().replace(str(entry.get("hash", "")), ""))
+                row.setdefault("kernels", []).append([zlib.crc32(shape.encode()), round(seconds, 4)])
+                if os.environ.get("TORCHIR_TEST_PROFILE_IR"):  # the IR itself, to see which literals differ
+                    os.makedirs(os.path.join(folder, "ir"), exist_ok=True)
+                    name = f"{zlib.crc32(shape.encode())}_{entry.get('hash', '')}.ll"
+                    with open(os.path.join(folder, "ir", name), "w") as f:
+                        f.write(entry["ir"].getvalue())
+            elif entry.get("cache_disk", 0):
+                row["disk_loads"] += 1
+        os.makedirs(folder, exist_ok=True)
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        with open(os.path.join(folder, f"{worker}.jsonl"), "a") as f:
+            f.write(json.dumps(row) + "\n")
 
 
 @pytest.fixture(autouse=True)

@@ -296,6 +296,7 @@ def test_chains_script_tiny_run():
 
 
 # ------------------------------------------------------------------------------ restir_views
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_views_bench_tiny_run(tmp_path):
     """A tiny run of the multi-view bench writes its outputs, with one error per step and a
     clock that only grows; the summary's efficiency is (e_base^2 t_base) / (e^2 t)."""

@@ -61,6 +61,7 @@ def test_blocker_and_edge_candidates_reach_the_scene_and_every_sampler():
         restir_shadow.parse_args(["--blocker", "tree"])
 
 
+@pytest.mark.slow  # benchmark run (4 methods compiled); CI covers edge chains in tests/test_shape_gradients.py
 def test_only_restir_with_edge_chains_keeps_shadow_edge_samples_across_steps():
     """The ablation the benchmark exists for: "ReSTIR, edge chains" reuses its shadow-edge samples
     across steps (one chain per sensor and mesh, confidence gained from the second step on);

@@ -34,6 +34,7 @@ def _run(out: Path, *args: str, timeout: float) -> dict:
     return json.loads((out / "results.json").read_text())
 
 
+@pytest.mark.slow  # statistical soak / benchmark run: out of CI, `python3 -m pytest -n 2 -m slow`
 def test_quick_red_wall_both_methods_reduce_the_error(tmp_path):
     report = _run(tmp_path, "--quick", "--tasks", "red_wall", "--steps", "12", "--no-formats", timeout=120)
     for name in ("summary.md", "results.json", "curves.png"):

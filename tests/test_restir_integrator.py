@@ -18,6 +18,7 @@ import contextlib
 import gc
 import math
 import time
+import weakref
 
 import torchir  # noqa: I001  (before torch)
 
@@ -28,6 +29,7 @@ import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+from torchir import backend  # noqa: E402
 from torchir.integrators import _knn, _light, restir_di  # noqa: E402
 from torchir.integrators.restir_di import ReSTIRDirectIntegrator, check_scene  # noqa: E402
 
@@ -297,11 +299,12 @@ def test_one_candidate_is_next_event_estimation(multi, target):
 def test_streaming_ris_equals_algorithm_a1(multi, target, monkeypatch):
     """Three candidates: image and reservoirs (W, w_sum, light, shading point, M) equal Alg. A1
     on the same random numbers, unrolled and as a symbolic loop (more than
-    ``UNROLLED_CANDIDATES``)."""
+    ``UNROLLED_CANDIDATES``, or a wavefront of at most ``SYMBOLIC_UP_TO_LANES``)."""
     want, res = _ris(multi, 5, 2, 3, target == "shadowed")
     assert len(np.unique(res["em"][res["W"] > 0])) == 3  # every light is chosen somewhere
-    for unrolled in (32, 2):
+    for unrolled, symbolic_lanes in ((32, 0), (2, 0), (32, 10**9)):
         monkeypatch.setattr(restir_di, "UNROLLED_CANDIDATES", unrolled)
+        monkeypatch.setattr(restir_di, "SYMBOLIC_UP_TO_LANES", symbolic_lanes)
         i = _integrator(candidates=3, temporal=False, spatial=False, burn_in=0, target=target, freeze=unrolled == 2)
         img, cache = i.step(multi, 0, 5, 2)
         np.testing.assert_allclose(_np(img), want, rtol=1e-5, atol=1e-6)
@@ -1305,6 +1308,52 @@ def test_unfrozen_steps_launch_the_same_kernels_for_every_seed(point, options):
             dr.eval()
             kernels.append(sorted(k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT))
     assert kernels[0] and kernels[0] == kernels[1]
+
+
+@pytest.mark.parametrize("freeze", [False, True], ids=["unfrozen", "frozen"])
+def test_a_new_radius_reuses_the_compiled_kernels(point, freeze):
+    """Each sensor state's radius (automatic: from its footprints and first seed) entered the
+    kernels as a literal, so every new state and every view compiled them again (32 times in one
+    test of 16 runs)."""
+    kernels = []
+    for radius in (0.05, 0.0625):
+        i = _integrator(candidates=2, burn_in=0, radius=radius, freeze=freeze, nn_backend="screen")
+        i.step(point, 0, 0, 1)
+        with backend.count_kernels() as stats:
+            i.step(point, 0, 1, 1)  # a spatiotemporal step: the radius bounds the search
+        kernels.append(stats)
+    assert kernels[0].launched > 0 and kernels[1].compiled == 0, kernels
+
+
+@pytest.mark.parametrize("options", [{"temporal": False, "spatial": False}, {}], ids=["b2", "spatiotemporal"])
+def test_another_candidate_count_or_cap_reuses_the_compiled_kernels(point, options):
+    """On a small wavefront the candidates run as a symbolic loop whose count, like the M cap,
+    is an opaque value: samplers with other counts (a burn-in pass, B.1 against B.2, a tuning
+    trial) or caps share the kernels instead of compiling their own."""
+    kernels = []
+    for candidates, m_cap in ((3, 7), (5, 9)):
+        i = _integrator(candidates=candidates, burn_in=0, freeze=False, nn_backend="screen",
+                        **{"m_cap": m_cap, **options})
+        i.step(point, 0, 0, 1)
+        with backend.count_kernels() as stats:
+            i.step(point, 0, 1, 1)
+        kernels.append(stats)
+    assert kernels[0].launched > 0 and kernels[1].compiled == 0, kernels
+
+
+def test_a_dropped_integrator_frees_its_frozen_pass_at_once():
+    """The frozen pass held its integrator (a bound method kept on that integrator: a cycle), so
+    a dropped integrator and its scene lived until the cyclic collector ran, and every Dr.Jit
+    virtual call traced meanwhile covered the stale instances too (kernels compiled again)."""
+    i = _integrator(candidates=2, burn_in=0)
+    scene = mi.load_dict(_dict(False))
+    with backend.gc_paused():
+        i.step(scene, 0, 0, 1)
+        i.step(scene, 0, 1, 1)
+        assert i._frozen_pass is not None
+        alive = weakref.ref(i)
+        del i
+        assert alive() is None
 
 
 def test_temporal_memory_is_short_while_the_geometry_moves(point):

@@ -148,7 +148,7 @@ class KernelStats:
 
     launched: int = 0  # JIT kernels launched
     compiled: int = 0  # of those, compiled from scratch (neither in memory nor on disk)
-    cache_misses: int = 0  # of those, not found in the in-memory kernel cache
+    cache_misses: int = 0  # of those, not found in the in-memory kernel cache (compiled or loaded from disk)
     execution_time: float = 0.0  # seconds spent executing kernels (as Dr.Jit measures it)
     hashes: list[str] = field(default_factory=list)  # hashes of the compiled kernels
 
@@ -186,11 +186,13 @@ def drain_kernel_history(stats: KernelStats | None = None) -> KernelStats:
             continue
         stats.launched += 1
         stats.execution_time += float(entry.get("execution_time", 0.0)) * 1e-3
-        if not entry.get("cache_hit", 0):
+        # Dr.Jit marks a kernel loaded from its disk cache as a hit too (cache_hit and cache_disk)
+        in_memory = entry.get("cache_hit", 0) and not entry.get("cache_disk", 0)
+        if not in_memory:
             stats.cache_misses += 1
-            if not entry.get("cache_disk", 0):
-                stats.compiled += 1
-                stats.hashes.append(str(entry.get("hash", "")))
+        if not entry.get("cache_hit", 0):
+            stats.compiled += 1
+            stats.hashes.append(str(entry.get("hash", "")))
     return stats
 
 

@@ -132,6 +132,8 @@ import copy
 import math
 import time
 import warnings
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -182,6 +184,10 @@ CHAIN_CAP = 64  # default M cap of a lane's own chain, in candidates (m_cap: 2; 
 GUIDE_LEARNING_SHARE = 0.25
 GUIDE_LEARNING_PER_STEP = 4  # candidates a step's guides learn from (unrolled streams; longer ones: all)
 UNROLLED_CANDIDATES = 32  # more candidates: a symbolic loop (kernel size and compile time)
+# Unguided wavefronts of up to this many lanes run the candidates as a symbolic loop: unrolling
+# halves nothing there but doubles the compile (painting, 16 candidates, 3 steps: 8.1 s -> 4.0 s
+# at 16²; a step 15 vs 16 ms at 16², 70 vs 71 ms at 128²); from 256² on it pays (207 vs 233 ms)
+SYMBOLIC_UP_TO_LANES = 128 * 128
 
 
 def check_scene(scene: mi.Scene) -> None:
@@ -552,7 +558,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             return False
         # one recording per sensor and pass kind (fresh RIS, reuse) is expected
         recordings = backend.frozen_recordings(len(scene.sensors()))
-        self._frozen_pass, self._geometry_frozen = dr.freeze(self._pass, warn_after=recordings), now
+        self._frozen_pass, self._geometry_frozen = dr.freeze(_weakly_bound(self._pass), warn_after=recordings), now
         return True
 
     def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, buckets, keep_offsets,
@@ -609,7 +615,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         learn = not keep_offsets or candidates == self.candidates
         y, f_sel, phat_sel, w_sum, zero = self._streaming_ris(scene, si, sampler, valid, n, zero_remainder, candidates,
                                                               guide=draws, learn=learn)
-        m_fresh = mi.Float(candidates)
+        m_fresh = dr.opaque(mi.Float, candidates)  # as the loop's count: one kernel for every count
         if (redrawn is not None and self.lane_chains and self.burn_in > 0 and self.young_lane_burn_in
                 and candidates == self.candidates):
             # A redrawn lane starts a new chain at a new point: with this step's candidates only, its
@@ -639,16 +645,19 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if source != "none":
             src = prev if source == "temporal" else r
             exclude_self = source == "spatial"
+            # opaque: each sensor state's automatic radius differs (its footprints, its first seed),
+            # and as a literal it compiled these kernels again for every view and every new state
+            radius_v = dr.opaque(mi.Float, radius)
             # screen window per query: ceil(radius / its pixel footprint), at most layout.window
             footprint = pi.t * dr.norm(ray.d_x - ray.d)
-            windows = mi.UInt32(dr.clip(dr.ceil(radius / dr.select(footprint > 0, footprint, radius)), 1, 3))
+            windows = mi.UInt32(dr.clip(dr.ceil(radius_v / dr.select(footprint > 0, footprint, radius_v)), 1, 3))
             own_chain = keep_offsets and self.lane_chains
             if own_chain:  # the lane's own chain (a search could pick a neighbour's)
                 d = src.p - r.p
                 # a redrawn lane starts afresh: reused at its new shading point, a long memory
                 # counts in Z (R8) where its sample is hidden, darkening or brightening the lane for
                 # many steps (measured: worse than a fresh start)
-                nbr, ok = [lane], [keep & r.valid & src.valid & (dr.dot(d, d) < radius * radius)]
+                nbr, ok = [lane], [keep & r.valid & src.valid & (dr.dot(d, d) < radius_v * radius_v)]
                 cap = self.chain_cap
                 self._neighbour_search.last = "lane"
             elif buckets is not None:  # the store (multiview="carry_over"): reprojected to this film
@@ -734,9 +743,10 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         symbolic loop's, from the first ``GUIDE_LEARNING_PER_STEP`` of an unrolled one (the
         learning's scatters cost more than the draws: 3x a usual candidate in a loop, against
         1.3x without learning).
-        Up to ``UNROLLED_CANDIDATES`` the loop is unrolled into the kernel (``unroll`` forces
-        either way); beyond, a symbolic loop keeps the kernel small (1024 unrolled candidates
-        took minutes to compile)."""
+        Up to ``UNROLLED_CANDIDATES`` the loop is unrolled into the kernel where that pays: with
+        guides, or beyond ``SYMBOLIC_UP_TO_LANES`` lanes (``unroll`` forces either way); else a
+        symbolic loop keeps the kernel small (1024 unrolled candidates took minutes to compile;
+        16 compile in twice a loop's time). Both draw the same random numbers."""
         y, y0 = dr.zeros(LightSample(), n), dr.zeros(LightSample(), n)
         f_sel, phat_sel = dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n)
         w_sum, inv_pc0, n0 = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
@@ -757,14 +767,18 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                     light_of_lane)
 
         state = (y, f_sel, phat_sel, w_sum, y0, inv_pc0, n0, light_of_lane)
-        if (candidates <= UNROLLED_CANDIDATES) if unroll is None else unroll:
+        if unroll is None:
+            unroll = candidates <= UNROLLED_CANDIDATES and (n > SYMBOLIC_UP_TO_LANES or guide is not None)
+        if unroll:
             for i in range(candidates):  # a step's guides learn from a few (their scatters cost)
                 state = candidate(*state, learn_here=i < GUIDE_LEARNING_PER_STEP)
         else:
             def body(i, sampler_, *rest):
                 return (i + 1, sampler_, *candidate(*rest))
 
-            count = dr.select(valid, candidates, 0)  # lanes without a shading point, or not asked for, exit at once
+            # lanes without a shading point, or not asked for, exit at once; an opaque count: one
+            # kernel for every number of candidates (a burn-in pass, a step, another sampler)
+            count = dr.select(valid, dr.opaque(mi.UInt32, candidates), 0)
             _, _, *state = dr.while_loop(
                 (dr.zeros(mi.UInt32, n), sampler, *state), lambda i, *rest: i < count, body,
                 labels=("i", "sampler", "y", "f", "phat", "w_sum", "y0", "inv_pc0", "n0", "light"),
@@ -774,7 +788,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             guide.finish(light_of_lane)
         if not zero_remainder:
             return y, f_sel, phat_sel, w_sum, None
-        w0 = n0 * inv_pc0 / candidates
+        w0 = n0 * inv_pc0 / dr.opaque(mi.Float, candidates)
         w0 = dr.select(_visible(scene, si, y0, valid & (w0 > 0)), w0, 0.0)  # V = 0: no gradient
         return y, f_sel, phat_sel, w_sum, (y0, w0)
 
@@ -790,7 +804,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         sample, if ``W > 0``, was visible from this very point, so neither its shadow ray nor
         the rebuilt point of the support test is traced again (the same answers, 2 rays fewer)."""
         valid = r.valid  # si: the lanes' own shading points (the pass's first hits)
-        cap = mi.Float(m_cap)
+        cap = dr.opaque(mi.Float, m_cap)  # a literal compiled again for every cap (moving geometry lowers it)
         # w_0 = p̂(y_0) W_0 M_0 (R6): r_0.w_sum for a fresh RIS reservoir, and also right for an
         # already combined one, whose w_sum is not M p̂ W (measured: reusing w_sum there made W
         # grow without bound)
@@ -1253,3 +1267,17 @@ def _differentiated_meshes(scene: mi.Scene, params: Any) -> list:
         return []
     names = {name[: -len(".vertex_positions")] for name in moving if name.endswith(".vertex_positions")}
     return [shape for shape in scene.shapes() if shape.id() in names]
+
+
+def _weakly_bound(method: Callable) -> Callable:
+    """``method`` (bound), holding its object only weakly: a frozen function kept on the object
+    that holds it would form a reference cycle, so a dropped integrator (and its scene) lived on
+    until the cyclic collector ran, and every Dr.Jit virtual call traced meanwhile covered its
+    stale instances too (compiling those kernels again; slower renders)."""
+    owner, function = weakref.ref(method.__self__), method.__func__
+
+    def call(*args):
+        return function(owner(), *args)
+
+    call.__name__ = call.__qualname__ = function.__name__
+    return call
