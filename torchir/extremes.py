@@ -53,6 +53,18 @@ def _context() -> dict[str, Any]:
 RED, LIGHT = "red.reflectance.value", "light.emitter.radiance.value"
 
 
+def _cached(ctx: dict[str, Any], name: str, **options: Any) -> Any:
+    """``Scene.builtin(name, **options)``, built once per context: every render binds its own
+    values onto the loaded scene, and one scene instead of one per case lets the cases share
+    their kernels (each live scene changes the virtual calls' code)."""
+    import torchir
+
+    key = (name, tuple(sorted(options.items())))
+    if key not in ctx.setdefault("scenes", {}):
+        ctx["scenes"][key] = torchir.Scene.builtin(name, **options)
+    return ctx["scenes"][key]
+
+
 def _with_gradients(out: torch.Tensor, values: dict[str, torch.Tensor]) -> Any:
     """``out``, and the gradients of its sum w.r.t. the values that require grad."""
     leaves = [v for v in values.values() if v.requires_grad]
@@ -146,13 +158,10 @@ def _nan(x: torch.Tensor) -> torch.Tensor:
 
 def _restir(light: float | None = None, albedo: float | None = None, **options: Any) -> Callable[[dict], Any]:
     def run(ctx: dict) -> Any:
-        import torchir
         from torchir.functions import render
         from torchir.samplers import ReSTIRSampler
 
-        scene = ctx.get("restir_scene")
-        if scene is None:
-            scene = ctx["restir_scene"] = torchir.Scene.builtin("cbox", resolution=8, max_depth=2)
+        scene = _cached(ctx, "cbox", resolution=8, max_depth=2)
         values: dict[str, torch.Tensor] = {RED: torch.full((3,), 0.5 if albedo is None else albedo, requires_grad=True)}
         if light is not None:
             values[LIGHT] = torch.full((3,), light)
@@ -286,11 +295,10 @@ def _restir_door_closed(**options: Any) -> Callable[[dict], Any]:
     shading point is occluded, every reservoir stays empty."""
 
     def run(ctx: dict) -> Any:
-        import torchir
         from torchir.functions import render
         from torchir.samplers import ReSTIRSampler
 
-        scene = torchir.Scene.builtin("ajar_painting", resolution=8, texture=2, door=0.0, fill=0.0)
+        scene = _cached(ctx, "ajar_painting", resolution=8, texture=2, door=0.0, fill=0.0)
         key = "painting.bsdf.reflectance.data"
         texture = torch.full_like(scene.get(key), 0.5).requires_grad_()
         sampler = ReSTIRSampler(scene, **{"burn_in": 2, "seed": 0, **options})
@@ -310,11 +318,10 @@ def _restir_light_on_after_burn_in(**options: Any) -> Callable[[dict], Any]:
     reservoirs are not reused for that step, the fresh candidates find the light."""
 
     def run(ctx: dict) -> Any:
-        import torchir
         from torchir.functions import render
         from torchir.samplers import ReSTIRSampler
 
-        scene = torchir.Scene.builtin("cbox", resolution=8, max_depth=2)
+        scene = _cached(ctx, "cbox", resolution=8, max_depth=2)
         red = torch.full((3,), 0.5, requires_grad=True)
         sampler = ReSTIRSampler(scene, **{"burn_in": 2, "seed": 0, **options})
         off = {RED: red, LIGHT: torch.zeros(3)}
@@ -354,7 +361,7 @@ def _restir_scales_with_emission(result: Any, ctx: dict) -> str | None:
     light's images and albedo gradient times ``L / L0``, channel by channel."""
     *images, grad, _ = result
     *base_images, base_grad, _ = _restir()(ctx)
-    ratio = 1e6 / ctx["restir_scene"].get(LIGHT)
+    ratio = 1e6 / _cached(ctx, "cbox", resolution=8, max_depth=2).get(LIGHT)
     for i, (out, base) in enumerate(zip(images, base_images)):
         if not torch.allclose(out, base * ratio.view(3, 1, 1), rtol=1e-4, atol=0):
             return f"image {i} not linear in emission"
