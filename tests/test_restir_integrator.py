@@ -18,7 +18,6 @@ import contextlib
 import gc
 import math
 import time
-import weakref
 
 import torchir  # noqa: I001  (before torch)
 
@@ -1339,21 +1338,6 @@ def test_another_candidate_count_or_cap_reuses_the_compiled_kernels(point, optio
             i.step(point, 0, 1, 1)
         kernels.append(stats)
     assert kernels[0].launched > 0 and kernels[1].compiled == 0, kernels
-
-
-def test_a_dropped_integrator_frees_its_frozen_pass_at_once():
-    """The frozen pass held its integrator (a bound method kept on that integrator: a cycle), so
-    a dropped integrator and its scene lived until the cyclic collector ran, and every Dr.Jit
-    virtual call traced meanwhile covered the stale instances too (kernels compiled again)."""
-    i = _integrator(candidates=2, burn_in=0)
-    scene = mi.load_dict(_dict(False))
-    with backend.gc_paused():
-        i.step(scene, 0, 0, 1)
-        i.step(scene, 0, 1, 1)
-        assert i._frozen_pass is not None
-        alive = weakref.ref(i)
-        del i
-        assert alive() is None
 
 
 def test_temporal_memory_is_short_while_the_geometry_moves(point):

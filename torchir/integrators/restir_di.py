@@ -132,8 +132,6 @@ import copy
 import math
 import time
 import warnings
-import weakref
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -558,7 +556,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             return False
         # one recording per sensor and pass kind (fresh RIS, reuse) is expected
         recordings = backend.frozen_recordings(len(scene.sensors()))
-        self._frozen_pass, self._geometry_frozen = dr.freeze(_weakly_bound(self._pass), warn_after=recordings), now
+        self._frozen_pass, self._geometry_frozen = dr.freeze(self._pass, warn_after=recordings), now
         return True
 
     def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, buckets, keep_offsets,
@@ -1268,16 +1266,3 @@ def _differentiated_meshes(scene: mi.Scene, params: Any) -> list:
     names = {name[: -len(".vertex_positions")] for name in moving if name.endswith(".vertex_positions")}
     return [shape for shape in scene.shapes() if shape.id() in names]
 
-
-def _weakly_bound(method: Callable) -> Callable:
-    """``method`` (bound), holding its object only weakly: a frozen function kept on the object
-    that holds it would form a reference cycle, so a dropped integrator (and its scene) lived on
-    until the cyclic collector ran, and every Dr.Jit virtual call traced meanwhile covered its
-    stale instances too (compiling those kernels again; slower renders)."""
-    owner, function = weakref.ref(method.__self__), method.__func__
-
-    def call(*args):
-        return function(owner(), *args)
-
-    call.__name__ = call.__qualname__ = function.__name__
-    return call
