@@ -51,6 +51,7 @@ def _context() -> dict[str, Any]:
 
 
 RED, LIGHT = "red.reflectance.value", "light.emitter.radiance.value"
+RESTIR_CBOX = {"resolution": 8, "max_depth": 2}  # the ReSTIR cases' cbox: direct light only
 
 
 def _cached(ctx: dict[str, Any], name: str, **options: Any) -> Any:
@@ -161,7 +162,7 @@ def _restir(light: float | None = None, albedo: float | None = None, **options: 
         from torchir.functions import render
         from torchir.samplers import ReSTIRSampler
 
-        scene = _cached(ctx, "cbox", resolution=8, max_depth=2)
+        scene = _cached(ctx, "cbox", **RESTIR_CBOX)
         values: dict[str, torch.Tensor] = {RED: torch.full((3,), 0.5 if albedo is None else albedo, requires_grad=True)}
         if light is not None:
             values[LIGHT] = torch.full((3,), light)
@@ -321,7 +322,7 @@ def _restir_light_on_after_burn_in(**options: Any) -> Callable[[dict], Any]:
         from torchir.functions import render
         from torchir.samplers import ReSTIRSampler
 
-        scene = _cached(ctx, "cbox", resolution=8, max_depth=2)
+        scene = _cached(ctx, "cbox", **RESTIR_CBOX)
         red = torch.full((3,), 0.5, requires_grad=True)
         sampler = ReSTIRSampler(scene, **{"burn_in": 2, "seed": 0, **options})
         off = {RED: red, LIGHT: torch.zeros(3)}
@@ -361,7 +362,7 @@ def _restir_scales_with_emission(result: Any, ctx: dict) -> str | None:
     light's images and albedo gradient times ``L / L0``, channel by channel."""
     *images, grad, _ = result
     *base_images, base_grad, _ = _restir()(ctx)
-    ratio = 1e6 / _cached(ctx, "cbox", resolution=8, max_depth=2).get(LIGHT)
+    ratio = 1e6 / _cached(ctx, "cbox", **RESTIR_CBOX).get(LIGHT)
     for i, (out, base) in enumerate(zip(images, base_images)):
         if not torch.allclose(out, base * ratio.view(3, 1, 1), rtol=1e-4, atol=0):
             return f"image {i} not linear in emission"

@@ -1265,4 +1265,3 @@ def _differentiated_meshes(scene: mi.Scene, params: Any) -> list:
         return []
     names = {name[: -len(".vertex_positions")] for name in moving if name.endswith(".vertex_positions")}
     return [shape for shape in scene.shapes() if shape.id() in names]
-
