@@ -18,6 +18,7 @@ import mitsuba as mi
 
 from ..scene import is_geometry_key
 from ._bound_op import BoundRenderOp
+from ._wrap import torch_to_drjit
 
 
 @runtime_checkable
@@ -70,6 +71,12 @@ class SamplerRenderOp(BoundRenderOp):
 
     def adjoint(self, grad_out: mi.TensorXf) -> None:
         s, r = self.settings, self.sampler
+        if self.cache is None:
+            raise RuntimeError(
+                f"this render by {type(r).__name__} was already back-propagated: its backward advances the sampler's "
+                f"gradient state and frees the step's paths, so it cannot run twice (retain_graph=True). Render "
+                f"again for another gradient, or sum the losses and call backward once."
+            )
         geometry = any(is_geometry_key(name) for name in self.grad_names)
         r.integrator.backward(
             self.scene.mi_scene, self.cache, grad_out, r.render_seed(s.seed_grad), s.spp_grad,
@@ -78,7 +85,7 @@ class SamplerRenderOp(BoundRenderOp):
         self.cache = None  # free the paths
 
 
-@dr.wrap(source="torch", target="drjit")
+@torch_to_drjit
 def render_with_sampler_drjit(scene, values: dict, grad_names: frozenset, settings, sampler):
     native = {name: scene.to_drjit(name, value) for name, value in values.items()}
     return dr.custom(SamplerRenderOp, scene, native, grad_names, settings, sampler)

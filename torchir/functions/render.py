@@ -12,6 +12,7 @@ from ..scene import Scene
 from . import _args
 from ._bound_op import BoundRenderOp
 from ._passes import passes
+from ._wrap import torch_to_drjit
 from ._sampler_op import RenderSampler, render_with_sampler_drjit
 
 __all__ = ["render"]
@@ -30,7 +31,7 @@ class _RenderOp(BoundRenderOp):
         passes(self.scene).adjoint(s.sensor, grad_out, s.seed_grad, s.spp_grad, self.fresh)
 
 
-@dr.wrap(source="torch", target="drjit")
+@torch_to_drjit
 def _render_drjit(scene: Scene, values: dict, grad_names: frozenset, settings: _args.RenderSettings):
     native = {name: scene.to_drjit(name, value) for name, value in values.items()}
     return dr.custom(_RenderOp, scene, native, grad_names, settings)

@@ -23,6 +23,7 @@ from ..scene import Scene
 from . import _args
 from ._bound_op import BoundRenderOp
 from ._passes import _clear_grads, passes
+from ._wrap import torch_to_drjit
 
 __all__ = ["render_pixels"]
 
@@ -213,7 +214,7 @@ class _PixelRenderOp(BoundRenderOp):
         _pixel_passes(self.scene).adjoint(s.sensors, s.index, δ_pixel, s.seed_grad, s.spp_grad, self.fresh)
 
 
-@dr.wrap(source="torch", target="drjit")
+@torch_to_drjit
 def _render_pixels_drjit(scene: Scene, values: dict, index, grad_names: frozenset, settings: _args.RenderSettings,
                          sensors: tuple[int, ...]):
     native = {name: scene.to_drjit(name, value) for name, value in values.items()}
