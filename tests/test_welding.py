@@ -50,6 +50,17 @@ def test_edges_come_from_positions_on_exported_meshes(exported, name, kind):
         assert positions - edges + mesh.face_count() == 2
 
 
+def test_a_faceted_mesh_that_shares_its_vertices_creases_at_every_bent_edge(exported):
+    """Mitsuba's ``face_normals`` (or a mesh built without normals): the faces share their
+    vertices, so only the uv seam's copies differ in normal group, yet the shading jumps at every
+    edge whose faces meet at an angle (the diagonals of the sphere's planar quads are not creases)."""
+    mesh = mi.load_dict({"type": "obj", "filename": str(exported["uv_sphere"]["obj"]), "face_normals": True})
+    table = edges_of(mesh)
+    quads = 16 * 8  # the default sphere's 16 segments x 8 bands of quads, one diagonal each
+    assert mesh_weld(mesh).flat and len(table.a) == 432
+    assert int(table.crease.sum()) == 432 - quads  # was 40: the seam's and poles' edges alone
+
+
 def test_index_topology_takes_seams_for_borders(exported):
     """What Mitsuba and torchir did before: by indices a uv sphere's seam and poles are borders."""
     mesh = _load(exported["uv_sphere"]["obj"])

@@ -69,9 +69,10 @@ def scene_dict(mesh: Any, integrator: dict[str, Any], resolution: int) -> dict[s
     }
 
 
-def mesh_spec(path: str | Path) -> dict[str, Any]:
+def mesh_spec(path: str | Path, face_normals: bool = False) -> dict[str, Any]:
     """Mitsuba's dict of the mesh at ``path`` (OBJ or PLY) as Mitsuba loads it, scaled into a
-    unit box centred 0.8 above the floor, diffuse grey."""
+    unit box centred 0.8 above the floor, diffuse grey; with ``face_normals`` faceted (Mitsuba's
+    loader option: the faces keep sharing their vertices, shaded with the faces' normals)."""
     path = Path(path)
     kind = {".obj": "obj", ".ply": "ply"}.get(path.suffix.lower())
     if kind is None:
@@ -81,7 +82,8 @@ def mesh_spec(path: str | Path) -> dict[str, Any]:
     lo, hi = p.min(0), p.max(0)
     scale = 1.0 / max(float((hi - lo).max()), 1e-12)
     to_world = mi.ScalarTransform4f().translate([0.0, 0.0, 0.8]).scale(scale).translate((-(lo + hi) / 2).tolist())
-    return {"type": kind, "filename": str(path), "to_world": to_world, "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.4}}}
+    return {"type": kind, "filename": str(path), "to_world": to_world, "face_normals": face_normals,
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.4}}}
 
 
 def welded_copy(mesh: mi.Mesh) -> mi.Mesh:
@@ -107,10 +109,10 @@ class Problem:
     """One mesh's gradient problem: the user's scene for each path, the welded reference, the
     adjoint and the displaced vertex (as a mask over the user's vertices and the welded ones)."""
 
-    def __init__(self, path: str | Path, resolution: int) -> None:
-        self.name = Path(path).name
+    def __init__(self, path: str | Path, resolution: int, face_normals: bool = False) -> None:
+        self.name = Path(path).name + (" (face_normals)" if face_normals else "")
         self.resolution = resolution
-        self.spec = mesh_spec(path)
+        self.spec = mesh_spec(path, face_normals)
         user_mesh = mi.load_dict(self.spec)
         weld = mesh_weld(user_mesh)
         self.repeats = weld.repeats
@@ -240,6 +242,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--spp", type=int, default=1)
     p.add_argument("--ref-spp", type=int, default=None)
     p.add_argument("--ref-seeds", type=int, default=8)
+    p.add_argument("--face-normals", action="store_true", help="load the meshes faceted (Mitsuba's face_normals option)")
     p.add_argument("--quick", action="store_true")
     p.add_argument("--out", type=Path, default=Path("results/bench/mesh_gradients"))
     a = p.parse_args(argv)
@@ -263,7 +266,7 @@ def run(a: argparse.Namespace) -> list[dict[str, Any]]:
         meshes = [str(p[k]) for p in write_all(folder).values() for k in (("obj",) if a.quick else ("obj", "ply"))]
     rows = []
     for path in meshes:
-        problem = Problem(path, a.resolution)
+        problem = Problem(path, a.resolution, a.face_normals)
         started = time.perf_counter()
         ref = problem.reference(a.ref_spp, a.ref_seeds)
         print(f"[mesh_gradients] {problem.name}: {problem.repeats} repeated vertices, reference "

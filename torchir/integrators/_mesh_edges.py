@@ -11,6 +11,8 @@ import numpy as np
 
 from ..welding import mesh_weld, weld_map
 
+CREASE_COSINE = 1e-4  # an edge whose second face leaves the first's plane by more is bent: a crease where shading is flat
+
 __all__ = ["EdgeTable", "mesh_edges", "edges_of", "endpoints", "faces_side", "seen_whole", "has_open_border",
            "back_seen_past_border", "mitsuba_silhouettes_wrong"]
 
@@ -29,7 +31,8 @@ class EdgeTable:
     crease: np.ndarray | None = None
 
 
-def mesh_edges(faces: np.ndarray, positions: np.ndarray | None = None, groups: np.ndarray | None = None) -> EdgeTable:
+def mesh_edges(faces: np.ndarray, positions: np.ndarray | None = None, groups: np.ndarray | None = None,
+               flat: bool = False) -> EdgeTable:
     """Unique edges of a triangle list ``faces`` (F, 3), each with its adjacent faces' third
     vertices.
 
@@ -41,7 +44,10 @@ def mesh_edges(faces: np.ndarray, positions: np.ndarray | None = None, groups: n
     them: it outlines the mesh exactly when those two lie on one side of a plane through it; it is
     dropped when no such wedge is under a half turn (its faces surround it: never an outline).
     Faces that collapse to a line after welding are skipped. ``groups`` (V,), the normal group of
-    each of the user's vertices (:class:`torchir.welding.MeshWeld`), fills ``crease``.
+    each of the user's vertices (:class:`torchir.welding.MeshWeld`), fills ``crease``; with
+    ``flat`` (the mesh is shaded with its face normals) every edge whose faces are not coplanar is
+    a crease too, whether or not they share its vertices (``face_normals``, a mesh built without
+    normals: only its uv seams would differ in group).
     """
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     group = np.asarray(groups, np.int64) if groups is not None else np.arange(int(faces.max(initial=-1)) + 1)
@@ -74,7 +80,21 @@ def mesh_edges(faces: np.ndarray, positions: np.ndarray | None = None, groups: n
         rows.append((u, v, w1, w2, int(gu1 != gu2 or gv1 != gv2)))
     table = np.array(rows, np.int64).reshape(-1, 5)
     columns = [np.ascontiguousarray(table[:, k].astype(np.uint32)) for k in range(4)]
-    return EdgeTable(*columns, crease=table[:, 4].astype(bool) if groups is not None else None)
+    crease = table[:, 4].astype(bool) if groups is not None else None
+    if flat and positions is not None and len(table):
+        crease = (crease if crease is not None else False) | _bent(points, table)
+    return EdgeTable(*columns, crease=crease)
+
+
+def _bent(points: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """Whether each edge's second face leaves the plane of its first (by more than
+    ``CREASE_COSINE`` of the third vertex's distance): false for coplanar faces and open borders."""
+    a, b, c1, c2 = (points[table[:, k]] for k in range(4))
+    n1 = np.cross(b - a, c1 - a)
+    n1 /= np.maximum(np.linalg.norm(n1, axis=1, keepdims=True), 1e-30)
+    to_c2 = c2 - a
+    to_c2 /= np.maximum(np.linalg.norm(to_c2, axis=1, keepdims=True), 1e-30)
+    return np.abs(np.einsum("ek,ek->e", n1, to_c2)) > CREASE_COSINE
 
 
 def _bounding_faces(a: np.ndarray, b: np.ndarray, thirds: np.ndarray) -> tuple[int, int] | None:
@@ -101,7 +121,8 @@ def edges_of(mesh: mi.Mesh) -> EdgeTable:
     :func:`torchir.welding.mesh_weld`), computed once per weld."""
     weld = mesh_weld(mesh)
     if weld.edges is None:  # kept with the weld: both are fixed once the mesh is first seen
-        weld.edges = mesh_edges(weld.faces, np.asarray(dr.detach(mesh.vertex_positions_buffer()), np.float32), weld.group)
+        weld.edges = mesh_edges(weld.faces, np.asarray(dr.detach(mesh.vertex_positions_buffer()), np.float32), weld.group,
+                                flat=weld.flat)
     return weld.edges
 
 

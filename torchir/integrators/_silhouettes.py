@@ -35,12 +35,11 @@ import mitsuba as mi
 import numpy as np
 
 from ._primary_forms import _shade, screen_projection
-from ._mesh_edges import EdgeTable, edges_of, endpoints, faces_side, seen_whole
+from ._mesh_edges import CREASE_COSINE, EdgeTable, edges_of, endpoints, faces_side, seen_whole
 
 __all__ = ["silhouette_backward", "supported"]
 
 SIDE_OFFSET = 1e-3  # pixels between the silhouette and the two shaded points
-CREASE_COSINE = 1e-4  # a flat-shaded edge whose second face leaves the first's plane by more is a shading crease
 VISIBLE_TOLERANCE = 1e-2  # the inside ray's hit must lie this close to xB, relative to its distance
 
 
