@@ -11,6 +11,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from ..functions import render
 from ..imageio import COLORSPACES, ENCODED_SUFFIXES, ColorSpace, is_lossy, read_image
+from ..jpeg import chroma_sampling
 
 __all__ = ["ViewDataModule", "ViewDataset", "load_image"]
 
@@ -33,22 +34,28 @@ def _resolve_saturation(saturation: Union[float, str, None], files: Optional[lis
 
 
 class ViewDataset(Dataset):
-    """Item ``i``: ``{"view": sensor index, "target": (C, H, W) image, "lossy": bool}``.
+    """Item ``i``: ``{"view": sensor index, "target": (C, H, W) image, "lossy": bool, "chroma":
+    (h, v, srgb)}``.
 
     ``lossy``: whether each target was read from a lossy file (JPEG), for
-    :func:`torchir.imageio.clipped_mask` (default: none was)."""
+    :func:`torchir.imageio.clipped_mask` (default: none was). ``chroma``: the file's chroma
+    subsampling and whether it stores sRGB values, for :func:`torchir.jpeg.subsample_chroma`
+    (default ``(1, 1, 1)``: none)."""
 
-    def __init__(self, views: list[int], targets: list[torch.Tensor], lossy: Optional[list[bool]] = None) -> None:
+    def __init__(self, views: list[int], targets: list[torch.Tensor], lossy: Optional[list[bool]] = None,
+                 chroma: Optional[list[tuple[int, int, bool]]] = None) -> None:
         self.views, self.targets = views, targets
         self.lossy = [False] * len(views) if lossy is None else list(lossy)
-        if len(self.lossy) != len(views):
-            raise ValueError(f"lossy has {len(self.lossy)} flag(s) for {len(views)} view(s)")
+        self.chroma = [(1, 1, True)] * len(views) if chroma is None else list(chroma)
+        if len(self.lossy) != len(views) or len(self.chroma) != len(views):
+            raise ValueError(f"lossy has {len(self.lossy)} and chroma {len(self.chroma)} entries for {len(views)} view(s)")
 
     def __len__(self) -> int:
         return len(self.views)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        return {"view": torch.tensor(self.views[i]), "target": self.targets[i], "lossy": torch.tensor(self.lossy[i])}
+        return {"view": torch.tensor(self.views[i]), "target": self.targets[i], "lossy": torch.tensor(self.lossy[i]),
+                "chroma": torch.tensor([int(c) for c in self.chroma[i]])}
 
 
 class ViewDataModule(pl.LightningDataModule):
@@ -104,6 +111,7 @@ class ViewDataModule(pl.LightningDataModule):
         self.views: list[int] = []
         self.targets: list[torch.Tensor] = []
         self.lossy: list[bool] = []  # per entry of views: its target file is lossy (JPEG)
+        self.chroma: list[tuple[int, int, bool]] = []  # per entry of views: its file's chroma subsampling, sRGB values
 
     def setup(self, stage: str) -> None:
         if self.targets:
@@ -130,6 +138,8 @@ class ViewDataModule(pl.LightningDataModule):
             for v, path in zip(self.views, self.target_files):
                 self.targets.append(self._read_target(path, v, scene))
             self.lossy = [is_lossy(path) for path in self.target_files]
+            srgb = self.colorspace != "linear"
+            self.chroma = [(*chroma_sampling(path), srgb) if lossy else (1, 1, srgb) for path, lossy in zip(self.target_files, self.lossy)]
 
     def _read_target(self, path: str, view: int, scene) -> torch.Tensor:
         """One target file as ``(3, H, W)`` linear radiance, checked against sensor ``view``."""
@@ -161,7 +171,7 @@ class ViewDataModule(pl.LightningDataModule):
             raise ValueError(f"data.views_per_step must be in [1, {len(self.views)}], got {per_step}")
         if per_step % world:
             raise ValueError(f"data.views_per_step ({per_step}) must be divisible by the number of processes ({world})")
-        dataset = ViewDataset(self.views, self.targets, self.lossy or None)
+        dataset = ViewDataset(self.views, self.targets, self.lossy or None, self.chroma or None)
         sampler = None
         if world > 1:
             # Each view stays with one process (its rank: position mod world). Lightning's own

@@ -16,6 +16,7 @@ from ..scene import _unbindable_hint
 from ..functions import render
 from ..derived import declare as declare_derived
 from ..imageio import clipped_mask
+from ..jpeg import ChromaCorrection
 from .parameters import ParameterConfig, SceneParameter, resolve_value
 
 __all__ = ["InverseRenderingModule", "NonFiniteLossError"]
@@ -358,6 +359,9 @@ class InverseRenderingModule(pl.LightningModule):
         else:
             guide = self.guide_buffers(views, step) if getattr(self.denoiser, "needs_guide", False) else None
             images = self.render_views(views, step)
+            if "chroma" in batch:  # a JPEG target's chroma is subsampled: add what the codec would change in the render
+                images = torch.stack([self.chroma_correction(image, view, (h, v), bool(srgb))
+                                      for image, view, (h, v, srgb) in zip(images, views, batch["chroma"].tolist())])
             saturation = self.target_saturation
             if saturation is not None:
                 # A clipped photo pixel only says "at least this bright": leave it out of the loss (the
@@ -424,6 +428,14 @@ class InverseRenderingModule(pl.LightningModule):
         row = {**self.step_metrics, "epoch": float(self.current_epoch)}
         for logger in self.loggers:
             logger.log_metrics(row, step=step)
+
+    @property
+    def chroma_correction(self) -> ChromaCorrection:
+        """For JPEG targets with subsampled chroma: the codec's change, from a running mean of each
+        view's renders (:class:`torchir.jpeg.ChromaCorrection`; kept in memory, not checkpointed)."""
+        if getattr(self, "_chroma_correction", None) is None:
+            self._chroma_correction = ChromaCorrection()
+        return self._chroma_correction
 
     @property
     def target_saturation(self) -> Optional[float]:
