@@ -137,6 +137,23 @@ def test_a_minimal_config_without_a_logger_runs(tmp_path, monkeypatch):
     assert (run / "metrics.csv").is_file() and (run / "result.yaml").is_file()
 
 
+def test_per_entry_bounds_from_yaml_pin_one_entry(tmp_path, monkeypatch):
+    """``bounds: [[lo per entry], [hi per entry]]`` from YAML: the red wall's blue channel pinned
+    at 0.1 (lo == hi) while red and green are fitted (as one axis of a rigid transform's
+    translation is pinned)."""
+    import yaml
+
+    config = tmp_path / "pinned.yaml"
+    config.write_text("model:\n  scene: cbox\n  resolution: 8\n  spp: 1\n  lr: 0.2\n  parameters:\n"
+                      "    red.reflectance.value: {init: [0.5, 0.5, 0.1], bounds: [[0, 0, 0.1], [1, 1, 0.1]]}\n"
+                      "data:\n  target_spp: 4\ntrainer:\n  max_steps: 3\n  enable_progress_bar: false\n")
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["fit", "--config", str(config), "--images.exr", "false"]) == 0
+    result = yaml.safe_load((tmp_path / "results" / "torchir" / "version_0" / "result.yaml").read_text())
+    red, green, blue = result["parameters"]["red.reflectance.value"]
+    assert blue == pytest.approx(0.1) and red != 0.5 and green != 0.5
+
+
 def test_the_console_of_a_run_holds_only_torchir_s_lines(tmp_path):
     """``torchir fit`` as a user starts it (a fresh process, a minimal YAML): every console line is
     torchir's progress bar or one of its ``[torchir]`` lines; none of Lightning's info lines ("Seed

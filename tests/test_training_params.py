@@ -176,3 +176,39 @@ def test_init_outside_bounds_is_refused_with_examples():
         _param(bad, bounds=(0, 1))
     with pytest.raises(ValueError, match=r"init has 1 value\(s\) outside bounds \[2.0, 6.0\] \(e.g. \[1.123457\]\)"):
         _param([1.1234567, 3.0], bounds=(2, 6), transform="sigmoid")
+
+
+# ------------------------------------------------------------------------------ per-entry bounds
+def test_per_entry_bounds_clamp_each_entry_and_pin_where_equal():
+    """``bounds: [[-1, -1, 0.2], [1, 1, 0.2]]``: a translation free in x and y, its z pinned."""
+    p = _param([0.1, -0.3, 0.2], bounds=([-1, -1, 0.2], [1, 1, 0.2]))
+    with torch.no_grad():
+        p.latent.copy_(torch.tensor([5.0, -5.0, 3.0]))
+    p.project()
+    torch.testing.assert_close(p(), torch.tensor([1.0, -1.0, 0.2]))
+    assert "per entry" in repr(p)
+    with pytest.raises(ValueError, match=r"init has 1 value\(s\) outside bounds \[\[-1.0, -1.0, 0.2.*per entry"):
+        _param([0.1, -0.3, 0.0], bounds=([-1, -1, 0.2], [1, 1, 0.2]))  # init off the pinned value
+
+
+def test_per_entry_bounds_with_a_sigmoid_and_a_random_init():
+    x = torch.tensor([[0.5, 2.0, 20.0], [0.25, 1.5, 12.0]])
+    p = _param(x, transform="sigmoid", bounds=([0, 1, 10], [1, 3, 30]))  # one range per colour channel
+    torch.testing.assert_close(p(), x, atol=1e-5, rtol=1e-5)
+    with torch.no_grad():
+        p.latent.fill_(50.0)
+    torch.testing.assert_close(p(), torch.tensor([1.0, 3.0, 30.0]).expand(2, 3))
+    value = resolve_value("random", torch.Size([4, 3]), torch.zeros(4, 3), ([0, 1, 10], [1, 3, 30]), 0, "init")
+    assert bool(((value >= torch.tensor([0, 1, 10])) & (value <= torch.tensor([1, 3, 30]))).all())
+    assert float(value[:, 2].min()) > 1.0  # drawn in each entry's own range
+
+
+@pytest.mark.parametrize(
+    ("bounds", "transform", "message"),
+    [(([0, 0], [1, 1, 1]), "none", r"bounds' lo has shape \(2,\), which does not broadcast to the parameter's shape \(3,\)"),
+     (([0, 1, 0], [1, 0, 1]), "none", r"lo <= hi for every entry"),
+     (([0, 0.5, 0], [1, 0.5, 1]), "sigmoid", r"lo < hi \(the sigmoid's range\) for every entry")],
+)
+def test_per_entry_bounds_errors(bounds, transform, message):
+    with pytest.raises(ValueError, match=message):
+        _param([0.5, 0.5, 0.5], bounds=bounds, transform=transform)

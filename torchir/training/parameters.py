@@ -34,7 +34,10 @@ class ParameterConfig:
             ``seed``), ``"scene"`` (the value the scene was loaded with) or an image file
             (``.png``/``.jpg``/``.exr``...: a texture, read as linear values like a target).
         bounds: ``[lo, hi]``: clamped after every optimiser step (transform ``none``) or the
-            range of the sigmoid (transform ``sigmoid``).
+            range of the sigmoid (transform ``sigmoid``). ``lo`` and ``hi`` are numbers, or lists
+            of one value per entry of the last axis (``[[0, 0, 0.2], [1, 1, 0.2]]`` for a colour
+            or a translation); with transform ``none`` an entry whose ``lo == hi`` is pinned there
+            (e.g. one axis of a rigid transform's translation).
         lr: learning rate of this parameter (default: the model's ``lr``).
         transform: ``none``, ``sigmoid`` or ``log`` (see the module docstring).
         seed: seed of a ``random`` init.
@@ -43,7 +46,7 @@ class ParameterConfig:
     """
 
     init: InitValue = 0.5
-    bounds: Optional[tuple[float, float]] = None
+    bounds: Optional[tuple[Union[float, list], Union[float, list]]] = None
     lr: Optional[float] = None
     transform: Literal["none", "sigmoid", "log"] = "none"
     seed: int = 0
@@ -63,7 +66,7 @@ def resolve_value(spec: InitValue, shape: torch.Size, scene_value: torch.Tensor,
         if spec == "scene":
             return scene_value.clone()
         if spec == "random":
-            lo, hi = bounds if bounds is not None else (0.0, 1.0)
+            lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in (bounds if bounds is not None else (0.0, 1.0)))
             generator = torch.Generator().manual_seed(seed)
             return lo + (hi - lo) * torch.rand(shape, generator=generator)
         if is_image_file(spec):
@@ -94,22 +97,20 @@ class SceneParameter(nn.Module):
         super().__init__()
         self.key, self.transform = key, config.transform
         bounds = config.bounds
-        if bounds is not None and not bounds[0] < bounds[1]:
-            raise ValueError(f"parameter {key!r}: bounds must satisfy lo < hi, got {list(bounds)}")
         if config.transform == "sigmoid":
             bounds = bounds or (0.0, 1.0)
         elif config.transform == "log" and bounds is not None:
             raise ValueError(f"parameter {key!r}: transform 'log' keeps values positive; drop 'bounds'")
         if config.lr is not None and not (isinstance(config.lr, (int, float)) and config.lr == config.lr and abs(config.lr) != float("inf") and config.lr > 0):
             raise ValueError(f"parameter {key!r}: lr must be a finite number > 0 (gradient descent), got {config.lr!r}")
-        self.bounds = None if bounds is None else (float(bounds[0]), float(bounds[1]))
+        self.bounds = _bounds(key, bounds, initial.shape, config.transform)
         if self.bounds is not None:
             lo, hi = self.bounds
             outside = (initial < lo) | (initial > hi)
             if bool(outside.any()):
                 bad = initial[outside].flatten()[:4].tolist()
                 raise ValueError(
-                    f"parameter {key!r}: init has {int(outside.sum())} value(s) outside bounds [{lo}, {hi}] "
+                    f"parameter {key!r}: init has {int(outside.sum())} value(s) outside bounds {_show(self.bounds)} "
                     f"(e.g. {[round(b, 6) for b in bad]}): change init or bounds"
                 )
             if config.transform == "sigmoid":
@@ -117,7 +118,7 @@ class SceneParameter(nn.Module):
                 if bool(on_end.any()):
                     raise ValueError(
                         f"parameter {key!r}: init has {int(on_end.sum())} value(s) on an end of the sigmoid's range "
-                        f"[{lo}, {hi}] (e.g. {initial[on_end].flatten()[0].item():g}), which the sigmoid only reaches at "
+                        f"{_show(self.bounds)} (e.g. {initial[on_end].flatten()[0].item():g}), which the sigmoid only reaches at "
                         "infinity: its slope there is ~0 and the parameter would barely move. Start inside the range "
                         "(e.g. its middle), widen bounds, or use transform: none with bounds"
                     )
@@ -153,4 +154,44 @@ class SceneParameter(nn.Module):
             self.latent.clamp_(*self.bounds)
 
     def extra_repr(self) -> str:
-        return f"key={self.key!r}, shape={tuple(self.latent.shape)}, transform={self.transform!r}, bounds={self.bounds}"
+        bounds = self.bounds if self.bounds is None or isinstance(self.bounds[0], float) else _show(self.bounds)
+        return f"key={self.key!r}, shape={tuple(self.latent.shape)}, transform={self.transform!r}, bounds={bounds}"
+
+
+Bounds = Union[tuple[float, float], tuple[torch.Tensor, torch.Tensor]]
+
+
+def _bounds(key: str, bounds: Optional[tuple], shape: torch.Size, transform: str) -> Optional[Bounds]:
+    """``bounds`` as two floats, or, where either end is a list, two float32 tensors of ``shape``
+    (a list gives one value per entry of the last axis); checked: ``lo < hi``, or ``lo <= hi``
+    per entry with transform ``none`` (an equal pair pins that entry)."""
+    if bounds is None:
+        return None
+    if len(bounds) != 2:
+        raise ValueError(f"parameter {key!r}: bounds must be [lo, hi], got {list(bounds)}")
+    lo, hi = bounds
+    if not isinstance(lo, (list, tuple, torch.Tensor)) and not isinstance(hi, (list, tuple, torch.Tensor)):
+        if not lo < hi:
+            raise ValueError(f"parameter {key!r}: bounds must satisfy lo < hi, got {list(bounds)}")
+        return float(lo), float(hi)
+    ends = []
+    for name, end in (("lo", lo), ("hi", hi)):
+        value = torch.as_tensor(end, dtype=torch.float32)
+        try:
+            ends.append(value.expand(shape).clone())
+        except RuntimeError:
+            raise ValueError(f"parameter {key!r}: bounds' {name} has shape {tuple(value.shape)}, which does not broadcast "
+                             f"to the parameter's shape {tuple(shape)} (give one value per entry of its last axis)") from None
+    lo, hi = ends
+    bad = (lo >= hi) if transform == "sigmoid" else (lo > hi)
+    if bool(bad.any()):
+        rule = "lo < hi (the sigmoid's range)" if transform == "sigmoid" else "lo <= hi"
+        raise ValueError(f"parameter {key!r}: bounds must satisfy {rule} for every entry, got {list(bounds)}")
+    return lo, hi
+
+
+def _show(bounds: Bounds) -> str:
+    lo, hi = bounds
+    if isinstance(lo, float):
+        return f"[{lo}, {hi}]"
+    return f"[{lo.flatten()[:6].tolist()}, {hi.flatten()[:6].tolist()}]" + (" (per entry)" if lo.numel() <= 6 else " (per entry, first 6)")
