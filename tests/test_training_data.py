@@ -144,7 +144,8 @@ def test_view_dataset():
     ds = ViewDataset([3, 5], targets)
     assert len(ds) == 2
     item = ds[1]
-    assert set(item) == {"view", "target", "lossy"}
+    assert set(item) == {"view", "target", "lossy", "chroma"}
+    assert item["chroma"].tolist() == [1, 1, 1]  # no chroma subsampling, sRGB values
     assert item["view"].dtype == torch.int64 and int(item["view"]) == 5 and item["view"].dim() == 0
     assert item["target"] is targets[1]
     assert item["lossy"].dtype == torch.bool and item["lossy"].dim() == 0 and not bool(item["lossy"])
@@ -152,6 +153,10 @@ def test_view_dataset():
     assert bool(flagged[0]["lossy"]) and not bool(flagged[1]["lossy"])
     with pytest.raises(ValueError, match=r"^lossy has 1 flag\(s\) for 2 view\(s\)$"):
         ViewDataset([3, 5], targets, lossy=[True])
+    subsampled = ViewDataset([3, 5], targets, lossy=[True, False], chroma=[(2, 2, True), (1, 1, True)])
+    assert subsampled[0]["chroma"].tolist() == [2, 2, 1] and subsampled[1]["chroma"].tolist() == [1, 1, 1]
+    with pytest.raises(ValueError, match=r"^chroma has 1 entr\(ies\) for 2 view\(s\)$"):
+        ViewDataset([3, 5], targets, chroma=[(2, 2, True)])
 
 
 def test_load_image(tmp_path, reads):

@@ -47,8 +47,10 @@ class ViewDataset(Dataset):
         self.views, self.targets = views, targets
         self.lossy = [False] * len(views) if lossy is None else list(lossy)
         self.chroma = [(1, 1, True)] * len(views) if chroma is None else list(chroma)
-        if len(self.lossy) != len(views) or len(self.chroma) != len(views):
-            raise ValueError(f"lossy has {len(self.lossy)} and chroma {len(self.chroma)} entries for {len(views)} view(s)")
+        if len(self.lossy) != len(views):
+            raise ValueError(f"lossy has {len(self.lossy)} flag(s) for {len(views)} view(s)")
+        if len(self.chroma) != len(views):
+            raise ValueError(f"chroma has {len(self.chroma)} entr(ies) for {len(views)} view(s)")
 
     def __len__(self) -> int:
         return len(self.views)
