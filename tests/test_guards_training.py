@@ -76,6 +76,16 @@ def _fit(save_dir, *overrides: str) -> int:
     ])
 
 
+def _fit_yaml(tmp_path, monkeypatch, name: str, text: str):
+    """Write ``text`` as ``tmp_path/name``, run ``torchir fit`` on it from ``tmp_path`` (as a user
+    would: no logger options) and return the run's folder."""
+    config = tmp_path / name
+    config.write_text(text)
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["fit", "--config", str(config), "--images.exr", "false"]) == 0
+    return tmp_path / "results" / "torchir" / "version_0"
+
+
 def _latents(path) -> dict[str, torch.Tensor]:
     state = torch.load(path, map_location="cpu", weights_only=False)["state_dict"]
     return {k: v for k, v in state.items() if k.endswith("latent")}
@@ -128,12 +138,9 @@ def test_a_minimal_config_without_a_logger_runs(tmp_path, monkeypatch):
     """Scene, one parameter, spp, max_steps: the first YAML a user writes. It names no
     ``trainer.logger``; the default CSV logger must still work (it once failed with
     "'LazyInstance_CSVLogger' object has no attribute '_version'")."""
-    config = tmp_path / "minimal.yaml"
-    config.write_text("model:\n  scene: cbox\n  resolution: 8\n  spp: 1\n  parameters:\n    red.reflectance.value: {init: 0.5}\n"
-                      "data:\n  target_spp: 4\ntrainer:\n  max_steps: 2\n  enable_progress_bar: false\n")
-    monkeypatch.chdir(tmp_path)
-    assert cli.main(["fit", "--config", str(config), "--images.exr", "false"]) == 0
-    run = tmp_path / "results" / "torchir" / "version_0"
+    run = _fit_yaml(tmp_path, monkeypatch, "minimal.yaml",
+                    "model:\n  scene: cbox\n  resolution: 8\n  spp: 1\n  parameters:\n    red.reflectance.value: {init: 0.5}\n"
+                    "data:\n  target_spp: 4\ntrainer:\n  max_steps: 2\n  enable_progress_bar: false\n")
     assert (run / "metrics.csv").is_file() and (run / "result.yaml").is_file()
 
 
@@ -143,13 +150,11 @@ def test_per_entry_bounds_from_yaml_pin_one_entry(tmp_path, monkeypatch):
     translation is pinned)."""
     import yaml
 
-    config = tmp_path / "pinned.yaml"
-    config.write_text("model:\n  scene: cbox\n  resolution: 8\n  spp: 1\n  lr: 0.2\n  parameters:\n"
-                      "    red.reflectance.value: {init: [0.5, 0.5, 0.1], bounds: [[0, 0, 0.1], [1, 1, 0.1]]}\n"
-                      "data:\n  target_spp: 4\ntrainer:\n  max_steps: 3\n  enable_progress_bar: false\n")
-    monkeypatch.chdir(tmp_path)
-    assert cli.main(["fit", "--config", str(config), "--images.exr", "false"]) == 0
-    result = yaml.safe_load((tmp_path / "results" / "torchir" / "version_0" / "result.yaml").read_text())
+    run = _fit_yaml(tmp_path, monkeypatch, "pinned.yaml",
+                    "model:\n  scene: cbox\n  resolution: 8\n  spp: 1\n  lr: 0.2\n  parameters:\n"
+                    "    red.reflectance.value: {init: [0.5, 0.5, 0.1], bounds: [[0, 0, 0.1], [1, 1, 0.1]]}\n"
+                    "data:\n  target_spp: 4\ntrainer:\n  max_steps: 3\n  enable_progress_bar: false\n")
+    result = yaml.safe_load((run / "result.yaml").read_text())
     red, green, blue = result["parameters"]["red.reflectance.value"]
     assert blue == pytest.approx(0.1) and red != 0.5 and green != 0.5
 
@@ -188,13 +193,10 @@ def test_a_scene_built_by_a_python_factory_runs(tmp_path, monkeypatch):
         "def broken(**_):\n"
         "    return 'not a scene'\n"
     )
-    config = tmp_path / "factory.yaml"
-    config.write_text("model:\n  scene: my_scenes.py:box\n  resolution: 8\n  scene_options: {red: 0.7}\n  spp: 1\n"
-                      "  parameters:\n    red.reflectance.value: {init: 0.3}\n"
-                      "data:\n  target_spp: 4\ntrainer:\n  max_steps: 2\n  enable_progress_bar: false\n")
-    monkeypatch.chdir(tmp_path)
-    assert cli.main(["fit", "--config", str(config), "--images.exr", "false"]) == 0
-    run = tmp_path / "results" / "torchir" / "version_0"
+    run = _fit_yaml(tmp_path, monkeypatch, "factory.yaml",
+                    "model:\n  scene: my_scenes.py:box\n  resolution: 8\n  scene_options: {red: 0.7}\n  spp: 1\n"
+                    "  parameters:\n    red.reflectance.value: {init: 0.3}\n"
+                    "data:\n  target_spp: 4\ntrainer:\n  max_steps: 2\n  enable_progress_bar: false\n")
     assert (run / "result.yaml").is_file()
     model = InverseRenderingModule(scene=f"{tmp_path / 'my_scenes.py'}:box", resolution=8, scene_options={"red": 0.7},
                                    parameters={"red.reflectance.value": {"init": 0.3}})
