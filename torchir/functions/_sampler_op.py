@@ -71,12 +71,6 @@ class SamplerRenderOp(BoundRenderOp):
 
     def adjoint(self, grad_out: mi.TensorXf) -> None:
         s, r = self.settings, self.sampler
-        if self.cache is None:
-            raise RuntimeError(
-                f"this render by {type(r).__name__} was already back-propagated: its backward advances the sampler's "
-                f"gradient state and frees the step's paths, so it cannot run twice (retain_graph=True). Render "
-                f"again for another gradient, or sum the losses and call backward once."
-            )
         geometry = any(is_geometry_key(name) for name in self.grad_names)
         r.integrator.backward(
             self.scene.mi_scene, self.cache, grad_out, r.render_seed(s.seed_grad), s.spp_grad,
