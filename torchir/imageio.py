@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 __all__ = [
-    "read_image", "write_image", "to_srgb", "save_png", "clipped_mask", "is_lossy",
+    "read_image", "write_image", "to_srgb", "srgb_encode", "srgb_decode", "save_png", "clipped_mask", "is_lossy",
     "COLORSPACES", "LINEAR_SUFFIXES", "ENCODED_SUFFIXES", "LOSSY_SUFFIXES", "SATURATED",
 ]
 
@@ -65,8 +65,18 @@ def _check_suffix(path: Path) -> None:
 
 def to_srgb(image: torch.Tensor, exposure: float = 1.0) -> torch.Tensor:
     """Linear radiance ``(C, H, W)`` -> display sRGB in [0, 1] (clipped, sRGB transfer curve)."""
-    x = (image.detach().float() * exposure).clamp(0.0, 1.0)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.pow(1.0 / 2.4) - 0.055)
+    return srgb_encode((image.detach().float() * exposure).clamp(0.0, 1.0))
+
+
+def srgb_encode(x: torch.Tensor) -> torch.Tensor:
+    """The sRGB transfer curve (IEC 61966-2-1) on linear values >= 0, differentiable (the power
+    branch never sees values below its threshold, so its gradient stays finite at 0)."""
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308).pow(1.0 / 2.4) - 0.055)
+
+
+def srgb_decode(x: torch.Tensor) -> torch.Tensor:
+    """The inverse of :func:`srgb_encode`, on encoded values >= 0, differentiable."""
+    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0.04045) + 0.055) / 1.055).pow(2.4))
 
 
 def is_lossy(path: str | Path) -> bool:

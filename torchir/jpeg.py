@@ -29,6 +29,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from .imageio import srgb_decode, srgb_encode
+
 __all__ = ["chroma_sampling", "subsample_chroma", "ChromaCorrection"]
 
 # JFIF's R'G'B' -> Y'CbCr (rows Y, Cb, Cr) on values in [0, 1]; the 0.5 offsets of Cb, Cr cancel
@@ -127,15 +129,11 @@ class ChromaCorrection:
 
 
 def _encode(x: torch.Tensor, srgb: bool) -> torch.Tensor:
-    if not srgb:
-        return x
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308).pow(1 / 2.4) - 0.055)
+    return srgb_encode(x) if srgb else x
 
 
 def _decode(x: torch.Tensor, srgb: bool) -> torch.Tensor:
-    if not srgb:
-        return x
-    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0.04045) + 0.055) / 1.055).pow(2.4))
+    return srgb_decode(x) if srgb else x
 
 
 def _mix(x: torch.Tensor, h: int, v: int) -> torch.Tensor:
