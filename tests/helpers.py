@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 from torch import nn
@@ -16,6 +18,27 @@ def assert_warned_at(record, test_file: str) -> None:
         assert files and all(os.path.join("torchir", "modules") not in f for f in files), files
     else:
         assert files == [test_file], [(w.filename, w.lineno) for w in record]
+
+
+def file_target_step(module, target: Path):
+    """``(batch, step)`` for driving ``module.training_step`` by hand on one target file, without
+    a Trainer: the batch its ``ViewDataModule`` gives (the file read and flagged as the trainer
+    reads it), and ``step(i)``, which stands in the trainer the step reads at global step ``i``."""
+    from torchir.training import ViewDataModule
+
+    datamodule = ViewDataModule(targets=[str(target)])
+    datamodule.trainer = SimpleNamespace(lightning_module=module, world_size=1)  # what setup reads
+    datamodule.setup("fit")
+    batch = next(iter(datamodule.train_dataloader()))
+    module.log = lambda *args, **kwargs: None
+    module._truth = {}
+
+    def step(i: int) -> torch.Tensor:
+        module._trainer = SimpleNamespace(world_size=1, global_step=i, current_epoch=0, log_every_n_steps=1,
+                                          loggers=[], should_stop=False, datamodule=datamodule)
+        return module.training_step(batch, 0)
+
+    return batch, step
 
 
 class NaNAfterLoss(nn.Module):

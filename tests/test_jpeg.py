@@ -3,7 +3,6 @@ for in a fit (``torchir.jpeg``)."""
 from __future__ import annotations
 
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,13 +10,14 @@ import torch
 from PIL import Image
 
 import torchir
-from torchir.imageio import read_image, write_image
+from torchir.imageio import read_image, to_srgb, write_image
 from torchir.jpeg import ChromaCorrection, chroma_sampling, subsample_chroma
+
+from .helpers import file_target_step
 
 
 def _srgb_bytes(image: torch.Tensor) -> np.ndarray:
-    x = image.clamp(0, 1).permute(1, 2, 0).double().numpy()
-    return np.rint(255 * np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)).astype(np.uint8)
+    return np.rint(255 * to_srgb(image).permute(1, 2, 0).double().numpy()).astype(np.uint8)
 
 
 def _write_jpeg_with_mitsuba(path: Path, image: torch.Tensor, quality: int) -> Path:
@@ -87,25 +87,18 @@ def test_correction_is_linear_in_the_render_and_uses_the_running_mean():
 
 def _fit_lamp(module, target: Path, steps: int = 200) -> torch.Tensor:
     """Adam on the lamp's radiance through the trainer's step, averaged over the second half."""
-    from torchir.training import ViewDataModule
-
-    datamodule = ViewDataModule(targets=[str(target)])
-    datamodule.trainer = SimpleNamespace(lightning_module=module, world_size=1)
-    datamodule.setup("fit")
-    batch = next(iter(datamodule.train_dataloader()))
+    _, step = file_target_step(module, target)
     truth = module.scene.get("light.emitter.radiance.value")
     latent = module.scene_parameters[0].latent
     latent.data.copy_(truth * 0.9)
     module._chroma_correction = None
     optimiser = torch.optim.Adam([latent], lr=0.1)
     trail = []
-    for step in range(steps):
-        module._trainer = SimpleNamespace(world_size=1, global_step=step, current_epoch=0, log_every_n_steps=1,
-                                          loggers=[], should_stop=False, datamodule=datamodule)
+    for i in range(steps):
         optimiser.zero_grad()
-        module.training_step(batch, 0).backward()
+        step(i).backward()
         optimiser.step()
-        if step >= steps // 2:
+        if i >= steps // 2:
             trail.append(latent.detach().clone())
     return torch.stack(trail).mean(0)
 
@@ -119,8 +112,6 @@ def test_a_jpeg_target_gives_the_pngs_colour(tmp_path, monkeypatch):
 
     module = InverseRenderingModule(scene="cbox", resolution=32, spp=8, loss="l2",
                                     parameters={"light.emitter.radiance.value": {"init": 1.0, "transform": "none"}})
-    module.log = lambda *args, **kwargs: None
-    module._truth = {}
     photo = torchir.functions.render(module.scene, {}, spp=64, seed=2)
     write_image(tmp_path / "photo.png", photo)
     jpeg = _write_jpeg_with_mitsuba(tmp_path / "photo.jpg", photo, 95)

@@ -7,7 +7,6 @@ import csv
 import math
 import shutil
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,6 +16,8 @@ import yaml
 import torchir
 from torchir import cli
 from torchir.training import InverseRenderingModule
+
+from .helpers import file_target_step
 
 # New APIs are imported inside the tests that use them, so that each test fails on its own
 # (not at collection) on code without them.
@@ -73,26 +74,17 @@ def _fitted_radiance(module: InverseRenderingModule, target: Path, seeds: range)
     """The trainer's answer for the lamp's radiance (``transform: none``) from a target file, per
     render seed: a render is linear in the radiance and the clipped mask does not move, so the
     loss is a parabola in each channel and two gradients give its minimum exactly."""
-    from torchir.training import ViewDataModule
-
-    datamodule = ViewDataModule(targets=[str(target)])
-    datamodule.trainer = SimpleNamespace(lightning_module=module, world_size=1)  # what setup reads
-    datamodule.setup("fit")
-    batch = next(iter(datamodule.train_dataloader()))
+    batch, step = file_target_step(module, target)
     assert batch["lossy"].tolist() == [target.suffix == ".jpg"]
     truth = module.scene.get("light.emitter.radiance.value")
     latent = module.scene_parameters[0].latent
-    module.log = lambda *args, **kwargs: None
-    module._truth = {}
     answers = []
     for seed in seeds:
         grads = []
         for value in (truth, 2 * truth):
-            module._trainer = SimpleNamespace(world_size=1, global_step=seed, current_epoch=0, log_every_n_steps=1,
-                                              loggers=[], should_stop=False, datamodule=datamodule)
             latent.data.copy_(value)
             latent.grad = None
-            module.training_step(batch, 0).backward()
+            step(seed).backward()
             grads.append(latent.grad.clone())
         answers.append(truth - grads[0] * truth / (grads[1] - grads[0]))
     return torch.stack(answers)
