@@ -21,7 +21,8 @@ def geometry_message(chained: bool | str) -> str:
              "auto": "afresh each step, or kept across steps (edge chains) on meshes with many edges, "}[chained]
     return ("ReSTIR with shape parameters: interior term with reuse (ray-following shading points); "
             "boundary terms: shadow edges sampled on the moving meshes under area lights " + edges
-            + "silhouettes without reuse, the rest from direct_projective; the temporal support test "
+            + "silhouettes and the shading-horizon bands of smooth meshes without reuse, the rest from "
+            "direct_projective; the temporal support test "
             "uses the current geometry (small bias, spec D7)")
 
 

@@ -36,21 +36,18 @@ import numpy as np
 from ._film import develop
 from ._light import FORWARD_FLAGS, eval_target, fresh_reservoirs
 
-__all__ = ["FORMS", "derivative_image", "screen_projection"]
+__all__ = ["FORMS", "derivative_image", "pinhole", "screen_projection"]
 
 FORMS = ("attached", "material")
 _EDGE_PDF = 0.25  # an edge of the four, then a uniform point on it (length 1 pixel)
 _collected_for: int | None = None  # id of the scene of the last call (see derivative_image)
 
 
-def screen_projection(sensor: mi.Sensor):
-    """``project(p) -> (s, J)`` for a pinhole ``perspective`` sensor: ``s`` the film position of
-    world points ``p`` in pixels (x right, y down, as Mitsuba's films), and a function
-    ``J(p, dp_du, dp_dv)``, ``|det ∂s/∂(u, v)|`` of a surface parameterised by ``(u, v)``.
-
-    The projection is ``s = a * (q.xy / q.z) + b`` in camera coordinates ``q``; ``a`` and ``b``
-    are read off two of the sensor's own rays, so its conventions (fov axis, aspect) carry over.
-    """
+def pinhole(sensor: mi.Sensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(to_local, a, b)`` of a pinhole ``perspective`` sensor: its world-to-camera matrix (4, 4)
+    and the film position ``s = a * (q.xy / q.z) + b`` (pixels, x right, y down, as Mitsuba's
+    films) of a point ``q`` in camera coordinates; ``a`` and ``b`` are read off two of the
+    sensor's own rays, so its conventions (fov axis, aspect) carry over."""
     w, h = (int(v) for v in sensor.film().crop_size())
     to_local = np.array(sensor.world_transform().inverse().matrix, dtype=np.float64).reshape(4, 4)
     ratios, films = [], []
@@ -61,6 +58,14 @@ def screen_projection(sensor: mi.Sensor):
         films.append(np.array([f * w, f * h]))
     a = (films[1] - films[0]) / (ratios[1] - ratios[0])
     b = films[0] - a * ratios[0]
+    return to_local, a, b
+
+
+def screen_projection(sensor: mi.Sensor):
+    """``project(p) -> (s, J)`` for a pinhole ``perspective`` sensor: ``s`` the film position of
+    world points ``p`` in pixels (:func:`pinhole`), and a function ``J(p, dp_du, dp_dv)``,
+    ``|det ∂s/∂(u, v)|`` of a surface parameterised by ``(u, v)``."""
+    to_local, a, b = pinhole(sensor)
     rot = mi.Matrix3f(*(float(v) for v in to_local[:3, :3].ravel()))
     shift = mi.Vector3f(*(float(v) for v in to_local[:3, 3]))
     ax, ay, bx, by = (float(v) for v in (a[0], a[1], b[0], b[1]))

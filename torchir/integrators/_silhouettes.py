@@ -45,7 +45,7 @@ VISIBLE_TOLERANCE = 1e-2  # the inside ray's hit must lie this close to xB, rela
 
 def silhouette_backward(integrator, scene: mi.Scene, sensor_index: int, grad_in: mi.TensorXf, meshes: list,
                         samples: int, seed: int, prev=None, radius: float | None = None,
-                        candidates: int | None = None) -> None:
+                        candidates: int | None = None, grazing: bool = False) -> None:
     """Accumulate into the meshes' grad-enabled vertex positions the primary-silhouette
     derivative of ``sum(grad_in * image)``, ``grad_in`` the image adjoint (H, W, 3) of sensor
     ``sensor_index`` (a pinhole ``perspective`` with a box filter): ``samples`` silhouette
@@ -53,7 +53,10 @@ def silhouette_backward(integrator, scene: mi.Scene, sensor_index: int, grad_in:
 
     ``integrator`` (a ``ReSTIRDirectIntegrator``) resamples the light at both sides with
     ``candidates`` (default its own); with ``prev`` (the reservoirs of an earlier step) each side then combines
-    with its ``neighbors`` nearest of them within ``radius`` (default: the sensor state's)."""
+    with its ``neighbors`` nearest of them within ``radius`` (default: the sensor state's).
+    ``grazing``: shade the inside as the camera sees it (black where it is below the shading
+    horizon), for use with the band's own term (:mod:`._shading_bands`); else as seen along the
+    shading normal, which stands in for the band as long as the band moves with the silhouette."""
     if samples < 1:
         raise ValueError(f"samples must be >= 1, got {samples}")
     if candidates is not None and candidates < 1:
@@ -79,7 +82,7 @@ def silhouette_backward(integrator, scene: mi.Scene, sensor_index: int, grad_in:
             continue
         n = max(1, round(samples * float(length.sum()) / total))
         _mesh_backward(integrator, scene, sensor, grad_in, mesh, table, length, n,
-                       int(mi.sample_tea_32(seed, i)[0]), prev, radius, project, camera, candidates)
+                       int(mi.sample_tea_32(seed, i)[0]), prev, radius, project, camera, candidates, grazing)
 
 
 def supported(scene: mi.Scene, sensor: mi.Sensor, meshes: list) -> bool:
@@ -113,7 +116,7 @@ def _projected_tangent(project, a: mi.Point3f, b: mi.Point3f, xb: mi.Point3f) ->
 
 
 def _mesh_backward(integrator, scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.ndarray, n: int,
-                   seed: int, prev, radius, project, camera, candidates) -> None:
+                   seed: int, prev, radius, project, camera, candidates, grazing: bool) -> None:
     film_w, film_h = (int(v) for v in sensor.film().crop_size())
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(dr.opaque(mi.UInt32, seed), n)
@@ -131,7 +134,7 @@ def _mesh_backward(integrator, scene, sensor, grad_in, mesh, table: EdgeTable, l
         n_in *= dr.sign(dr.dot(n_in, project(c1) - u))  # towards the mesh
 
         members = _shade(integrator, scene, sensor, [u + SIDE_OFFSET * n_in, u - SIDE_OFFSET * n_in],
-                         int(mi.sample_tea_32(seed, 1)[0]), seed, prev, radius, shared=False, seen_from_above=(0,),
+                         int(mi.sample_tea_32(seed, 1)[0]), seed, prev, radius, shared=False, seen_from_above=() if grazing else (0,),
                          candidates=candidates, unroll=False)
         inside, outside = members
         target = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(mesh))

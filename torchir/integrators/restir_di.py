@@ -143,7 +143,7 @@ from mitsuba.python.ad.integrators.common import RBIntegrator
 from .. import backend
 from ..scene import is_geometry_key
 from ..welding import WeldedFaces, moving_meshes
-from . import _knn, _light_guide, _shadow_edges, _silhouettes
+from . import _knn, _light_guide, _shading_bands, _shadow_edges, _silhouettes
 from ._film import develop
 from ._light import (FORWARD_FLAGS, LightSample, Reservoirs, eval_target, fresh_reservoirs, rebuild_interaction,
                      sample_candidate)
@@ -273,6 +273,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     edge_chain_cap = 32.0  # a shadow-edge chain's confidence cap, in candidates
     silhouette_sampling: bool | str = "auto"  # primary silhouettes sampled on the moving meshes' edges (_silhouettes; False: direct_projective's; auto: see uses_silhouette_sampling)
     silhouette_candidates = 16  # RIS light candidates on either side of a silhouette sample (bench restir_silhouette)
+    shading_bands: bool | str = "auto"  # the shading-horizon curves of smooth meshes (_shading_bands; auto: see uses_shading_bands)
     moving_geometry_m_cap = 4  # the M cap of temporal reuse after the geometry moved (see sample_paths; 0: m_cap)
 
     def __init__(self, props: mi.Properties | None = None, **options: Any) -> None:
@@ -887,6 +888,8 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             self._burn_in(scene, cache.sensor, seed_grad, spp_grad, gst)
             (ray_weight, _), lanes, stats, _ = self._advance(scene, cache.sensor, seed_grad, spp_grad, gst, zero is not None)
             spp, zero = spp_grad, stats.zero
+        if geometry:  # first: the interior's backward clears the normals' edges to the vertices
+            self._band_backward(scene, params, grad_in, cache.sensor, seed_grad, spp_grad)
         n = dr.width(lanes.valid)
         with dr.resume_grad():
             if geometry:  # ray-following shading point, as direct_projective (spec §6.7)
@@ -916,13 +919,16 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         ``edge_chain_cap``, or ``moving_geometry_m_cap`` after the mesh moved; ``"auto"``: see
         :meth:`edge_strategy`); with ``silhouette_sampling``, where
         :func:`_silhouettes.supported` (also a box filter), the primary silhouettes likewise
-        (``silhouette_candidates`` RIS light candidates either side, no reuse); the rest from
+        (``silhouette_candidates`` RIS light candidates either side, no reuse), and with
+        ``shading_bands`` the shading-horizon curves of smooth meshes (:mod:`._shading_bands`;
+        the silhouettes' insides are then shaded as the camera sees them); the rest from
         ``direct_projective``. The guides and the edge chains are not saved in checkpoints:
         after a resume they start afresh (the chains' first step is without reuse)."""
         meshes = _differentiated_meshes(scene, params)
         sensor_obj = scene.sensors()[sensor]
         edges = self.shadow_edge_sampling and _shadow_edges.supported(scene, sensor_obj, meshes)
-        silhouettes = self.uses_silhouette_sampling(meshes) and _silhouettes.supported(scene, sensor_obj, meshes)
+        bands = self.uses_shading_bands(meshes) and _shading_bands.supported(scene, sensor_obj, meshes)  # see _band_backward
+        silhouettes = (bands or self.uses_silhouette_sampling(meshes)) and _silhouettes.supported(scene, sensor_obj, meshes)
         if not (edges and silhouettes):
             # Mitsuba's edges come from vertex indices: on meshes that repeat positions (uv seams,
             # flat shading) its pass runs on welded faces (torchir.welding)
@@ -932,7 +938,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         w, h = (int(v) for v in sensor_obj.film().crop_size())
         if silhouettes:
             _silhouettes.silhouette_backward(self, scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 11)[0]),
-                                             candidates=self.silhouette_candidates)
+                                             candidates=self.silhouette_candidates, grazing=bands)
         if edges:
             reuse, guided = self.edge_strategy(scene, meshes, spp * w * h)
             guides = self._edge_guides if guided else None
@@ -940,6 +946,18 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             _shadow_edges.shadow_edge_backward(scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 7)[0]), guides,
                                                self.edge_light_candidates, self.edge_candidates, chains, self.edge_chain_cap,
                                                self.moving_geometry_m_cap if self.moving_geometry_m_cap > 0 else self.edge_chain_cap)
+
+    def _band_backward(self, scene: mi.Scene, params: Any, grad_in: mi.TensorXf, sensor: int, seed: int, spp: int) -> None:
+        """The shading-horizon term of the differentiated smooth meshes (``shading_bands``,
+        where :func:`_shading_bands.supported`; ``spp`` image lines a pixel). It runs before the
+        other terms: its derivative reaches the vertices through the normals computed from them,
+        an edge of the graph that a backward pass with Dr.Jit's default flags deletes."""
+        meshes = _differentiated_meshes(scene, params)
+        sensor_obj = scene.sensors()[sensor]
+        if self.uses_shading_bands(meshes) and _shading_bands.supported(scene, sensor_obj, meshes):
+            w, h = (int(v) for v in sensor_obj.film().crop_size())
+            _shading_bands.band_backward(self, scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 13)[0]),
+                                         candidates=self.silhouette_candidates)
 
     def uses_silhouette_sampling(self, meshes: list) -> bool:
         """Whether torchir samples the primary silhouettes of ``meshes`` itself (``silhouette_sampling``;
@@ -950,6 +968,16 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         if not isinstance(self.silhouette_sampling, (bool, np.bool_)):
             raise ValueError(f"silhouette_sampling must be True, False or 'auto', got {self.silhouette_sampling!r}")
         return bool(self.silhouette_sampling)
+
+    def uses_shading_bands(self, meshes: list) -> bool:
+        """Whether the shading-horizon term of smooth meshes is added (``shading_bands``;
+        ``"auto"``: where a moving mesh is shaded with interpolated vertex normals, whose band
+        along the silhouettes moves as they turn: :mod:`._shading_bands`)."""
+        if self.shading_bands == "auto":
+            return any(_shading_bands.smooth_shaded(m) for m in meshes)
+        if not isinstance(self.shading_bands, (bool, np.bool_)):
+            raise ValueError(f"shading_bands must be True, False or 'auto', got {self.shading_bands!r}")
+        return bool(self.shading_bands)
 
     def _traversed(self, scene: mi.Scene) -> Any:
         """``mi.traverse(scene)``, kept for the last scene (traversing costs a walk of the scene)."""

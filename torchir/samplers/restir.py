@@ -207,7 +207,8 @@ class ReSTIRSampler:
                 "ReSTIR with shape parameters: interior term with reuse (ray-following shading points); "
                 "boundary terms: shadow edges sampled on the moving meshes under area lights "
                 + edges
-                + "silhouettes without reuse, the rest from direct_projective; the temporal support test "
+                + "silhouettes and the shading-horizon bands of smooth meshes without reuse, the rest from "
+                "direct_projective; the temporal support test "
                 "uses the current geometry (small bias, spec D7)",
             )
 
