@@ -1,0 +1,128 @@
+"""Every command the README shows in a code block is run by a test: the ``torchir fit`` and
+``torchir export`` lines here, as written (from a fresh working directory, the README's own
+arguments), shortened to a few steps; the rest by the test named for it in ``ELSEWHERE``, or
+(benchmarks) by the test module of their suite; ``NOT_RUN`` lists the suites whose quick runs
+take minutes each and are left to ``torchir bench all --quick``. A command added to the README
+without a test fails ``test_every_readme_command_has_a_test``."""
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchir import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+SHORT = ["--trainer.max_steps", "2", "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
+FIT_HERE = {  # command -> extra arguments that keep it short (beside SHORT)
+    "torchir fit --config configs/quickstart.yaml": ["--model.resolution", "8"],
+    "torchir fit --config configs/quickstart.yaml --trainer.max_steps 50 --model.lr 0.02": ["--model.resolution", "8"],
+    "torchir fit --config configs/painting.yaml --data.targets [photo.exr] --data.views [0]": ["--model.resolution", "8"],
+    "torchir fit --config configs/examples/red_wall.yaml": [],
+    "torchir fit --config configs/examples/texture.yaml": [],
+    "torchir fit --config configs/examples/light.yaml": [],
+    "torchir fit --config configs/examples/pose.yaml": [],
+}
+SEQUENCE = [  # run in this order, in one working directory: each needs the one before
+    "torchir fit --config configs/quickstart.yaml",
+    "torchir fit --config configs/quickstart.yaml --ckpt_path last",
+    "torchir fit --config configs/quickstart.yaml --set red.reflectance.value.init=0.3",
+    "torchir export results/quickstart/version_0/checkpoints/last.ckpt",
+]
+SUITE_TESTS = {  # suite -> the test module that runs it (at a smaller size)
+    "restir": "test_bench_restir", "restir_views": "test_bench_restir", "restir_shadow": "test_bench_restir_shadow",
+    "restir_antithetic": "test_bench_restir_antithetic", "restir_silhouette": "test_bench_restir_silhouette",
+    "mesh_gradients": "test_mesh_gradients", "combined": "test_bench_combined", "stepcost": "test_bench_stepcost",
+    "scaleup": "test_bench_scaleup",
+}
+NOT_RUN = {"overhead", "adaptive", "denoiser", "loi", "soak", "all"}  # minutes each: `torchir bench all --quick`, not CI
+ELSEWHERE = {  # command -> "module::test" that runs it
+    "bash scripts/install.sh && torchir fit --config configs/quickstart.yaml": "test_readme_commands::test_fit_commands_as_the_readme_writes_them",
+    "torchir fit --config configs/multiview.yaml --trainer.strategy ddp --trainer.devices 2 --trainer.accelerator cpu":
+        "test_training_ddp::test_ddp_two_processes_match_one_process",
+    "torchir fit --help": "test_training_cli::test_fit_help_starts_with_torchir_s_own_flags",
+}
+CI_COMMAND = "bash scripts/install.sh --dev && python3 -m pytest -n 2 --dist loadfile"  # .ci/run runs it
+
+
+def readme_commands() -> list[str]:
+    """The commands in the README's indented code blocks, comments dropped, arguments unquoted."""
+    out = []
+    for line in (ROOT / "README.md").read_text().splitlines():
+        if re.match(r"^    (torchir|python3?|bash) ", line):
+            out.append(" ".join(shlex.split(line, comments=True)))
+    return out
+
+
+def _bench_command(command: str) -> str | None:
+    """The suite a benchmark command runs (``torchir bench S``, ``python3 scripts/bench_S.py``)."""
+    words = command.split()
+    if words[:2] == ["torchir", "bench"]:
+        return words[2]
+    match = re.fullmatch(r"scripts/bench_(\w+)\.py", words[1]) if words[0].startswith("python") else None
+    return match.group(1) if match else None
+
+
+def test_every_readme_command_has_a_test():
+    """Each command is run here, or by the test named for it (which must exist), or is a
+    benchmark whose suite exists and has a test module (or is listed in ``NOT_RUN``); nothing
+    else may appear."""
+    from torchir.bench import SUITES
+
+    commands = readme_commands()
+    assert len(commands) >= 20  # the parser found the code blocks
+    assert CI_COMMAND in (ROOT / ".ci" / "run").read_text()
+    for command in commands:
+        if command in FIT_HERE or command in SEQUENCE or command == CI_COMMAND:
+            continue
+        if command in ELSEWHERE:
+            module, _, test = ELSEWHERE[command].partition("::")
+            assert f"def {test}(" in (ROOT / "tests" / f"{module}.py").read_text(), (command, ELSEWHERE[command])
+            continue
+        if command == "python3 scripts/restir_chains.py many_lights":
+            assert (ROOT / "scripts" / "restir_chains.py").is_file()
+            continue
+        suite = _bench_command(command)
+        assert suite is not None, f"README command without a test: {command!r}"
+        assert suite == "all" or suite in SUITES, command
+        assert suite in NOT_RUN or (ROOT / "tests" / f"{SUITE_TESTS[suite]}.py").is_file(), command
+        if command.startswith("python"):
+            assert (ROOT / command.split()[1]).is_file(), command
+
+
+def _fit(tmp_path: Path, command: str, *extra: str) -> int:
+    words = shlex.split(command)[1:]
+    words = [str(ROOT / w) if w.startswith("configs/") else w for w in words]
+    if words[0] == "fit":
+        words += SHORT
+    return cli.main([*words, *extra])
+
+
+def test_fit_commands_as_the_readme_writes_them(tmp_path, monkeypatch):
+    """The quickstart, its resume from the newest ``last.ckpt``, a ``--set`` override and
+    ``torchir export`` of the first run, in one fresh working directory."""
+    monkeypatch.chdir(tmp_path)
+    for command in SEQUENCE:
+        extra = ["--model.resolution", "8"] if "fit" in command else []
+        if "--ckpt_path last" in command:
+            extra += ["--trainer.max_steps", "3"]  # one step past the run it resumes
+        assert _fit(tmp_path, command, *extra) == 0, command
+    run = tmp_path / "results" / "quickstart"
+    assert sorted(p.name for p in run.iterdir()) == ["version_0", "version_1", "version_2"]
+    assert (run / "version_0" / "export" / "result.yaml").is_file()
+
+
+@pytest.mark.parametrize("command", [c for c in FIT_HERE if c not in SEQUENCE])
+def test_other_fit_commands_run(tmp_path, monkeypatch, command):
+    """Each other ``torchir fit`` line of the README, two steps long; the painting's
+    ``photo.exr`` is a stand-in written where the user would keep it."""
+    monkeypatch.chdir(tmp_path)
+    if "photo.exr" in command:
+        from torchir.imageio import write_image
+
+        write_image(tmp_path / "photo.exr", torch.rand(3, 8, 8))
+    assert _fit(tmp_path, command, *FIT_HERE[command]) == 0
+    assert list((tmp_path / "results").rglob("result.yaml"))
