@@ -33,24 +33,17 @@ import mitsuba as mi
 import numpy as np
 
 from ..welding import mesh_weld
-from ._mesh_edges import seen_whole
 from ._primary_forms import _shade, pinhole
+# the same needs (box filter, pinhole, meshes seen whole), sides shaded as far apart, hits as close
+from ._silhouettes import SIDE_OFFSET, VISIBLE_TOLERANCE, checked_sensor, supported
 
 __all__ = ["band_backward", "smooth_shaded", "supported"]
 
-SIDE_OFFSET = 1e-3  # pixels between the curve and the two shaded points
-VISIBLE_TOLERANCE = 1e-2  # the lit side's hit must lie this close to the curve point, relative to its distance
 
 
 def smooth_shaded(mesh: mi.Mesh) -> bool:
     """Whether ``mesh`` is shaded with interpolated vertex normals (so it may have a band)."""
     return isinstance(mesh, mi.Mesh) and mesh.has_vertex_normals() and not mesh_weld(mesh).flat
-
-
-def supported(scene: mi.Scene, sensor: mi.Sensor, meshes: list) -> bool:
-    """Whether :func:`band_backward` covers ``meshes``: as the silhouette estimator, triangle
-    meshes seen whole by a pinhole perspective sensor with a box filter."""
-    return seen_whole(sensor, meshes) and "BoxFilter" in str(sensor.film().rfilter())
 
 
 def band_backward(integrator, scene: mi.Scene, sensor_index: int, grad_in: mi.TensorXf, meshes: list,
@@ -61,12 +54,7 @@ def band_backward(integrator, scene: mi.Scene, sensor_index: int, grad_in: mi.Te
     smooth-shaded ``meshes`` by their candidate triangles' extents. The light on either side is
     resampled by ``integrator`` (a ``ReSTIRDirectIntegrator``) with ``candidates`` RIS
     candidates (default its own), without reuse."""
-    if samples < 1:
-        raise ValueError(f"samples must be >= 1, got {samples}")
-    sensor = scene.sensors()[sensor_index]
-    if not supported(scene, sensor, meshes):
-        raise ValueError("band_backward needs triangle meshes (not emitters) and a pinhole perspective sensor "
-                         "with a box filter and no crop window (see supported)")
+    sensor = checked_sensor("band_backward", scene, sensor_index, meshes, samples)
     if not scene.emitters():
         return
     camera = _Camera(sensor)
@@ -209,7 +197,7 @@ def _mesh_backward(integrator, scene, sensor, grad_in, mesh, tris: _Triangles, c
         roots = [dr.select(linear, -qc / qb, root_q / qa), dr.select(linear, dr.nan, qc / root_q)]
     objective = []
     for k, r in enumerate(roots):
-        objective.append(_root_objective(integrator, scene, sensor, grad_in, mesh, face, rows, fixed, r, (disc >= 0) | (k == 0),
+        objective.append(_root_objective(integrator, scene, sensor, grad_in, mesh, face, rows, fixed, r, (disc >= 0) | linear,
                                      c, dx, dy, d_origin, big_x, big_y, n, w, h, int(mi.sample_tea_32(seed, 2 + k)[0]),
                                      candidates))
     with dr.resume_grad():

@@ -37,7 +37,7 @@ import numpy as np
 from ._primary_forms import _shade, screen_projection
 from ._mesh_edges import CREASE_COSINE, EdgeTable, edges_of, endpoints, faces_side, seen_whole
 
-__all__ = ["silhouette_backward", "supported"]
+__all__ = ["checked_sensor", "silhouette_backward", "supported"]
 
 SIDE_OFFSET = 1e-3  # pixels between the silhouette and the two shaded points
 VISIBLE_TOLERANCE = 1e-2  # the inside ray's hit must lie this close to xB, relative to its distance
@@ -57,14 +57,9 @@ def silhouette_backward(integrator, scene: mi.Scene, sensor_index: int, grad_in:
     ``grazing``: shade the inside as the camera sees it (black where it is below the shading
     horizon), for use with the band's own term (:mod:`._shading_bands`); else as seen along the
     shading normal, which stands in for the band as long as the band moves with the silhouette."""
-    if samples < 1:
-        raise ValueError(f"samples must be >= 1, got {samples}")
     if candidates is not None and candidates < 1:
         raise ValueError(f"candidates must be >= 1, got {candidates}")
-    sensor = scene.sensors()[sensor_index]
-    if not supported(scene, sensor, meshes):
-        raise ValueError("silhouette_backward needs triangle meshes (not emitters) and a pinhole perspective "
-                         "sensor with a box filter and no crop window (see supported)")
+    sensor = checked_sensor("silhouette_backward", scene, sensor_index, meshes, samples)
     if not scene.emitters():
         return  # a black image: nothing to move
     if prev is not None and radius is None:
@@ -90,6 +85,18 @@ def supported(scene: mi.Scene, sensor: mi.Sensor, meshes: list) -> bool:
     meshes that are not emitters, seen by a pinhole perspective sensor whose film has a box
     filter (a pixel is the mean over its square) and no crop window."""
     return seen_whole(sensor, meshes) and "BoxFilter" in str(sensor.film().rfilter())
+
+
+def checked_sensor(caller: str, scene: mi.Scene, sensor_index: int, meshes: list, samples: int) -> mi.Sensor:
+    """The sensor ``sensor_index`` of ``scene``, once ``samples`` and the scene are checked for a
+    boundary estimator (``caller``) that needs what :func:`supported` says."""
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
+    sensor = scene.sensors()[sensor_index]
+    if not supported(scene, sensor, meshes):
+        raise ValueError(f"{caller} needs triangle meshes (not emitters) and a pinhole perspective sensor with a box "
+                         f"filter and no crop window (see supported)")
+    return sensor
 
 
 def _silhouette_lengths(mesh, table: EdgeTable, camera: mi.Point3f, project) -> mi.Float:
