@@ -146,3 +146,17 @@ def test_direct_projective_on_a_smooth_mesh_warns_that_it_misses_the_band(sphere
     v = scene.get(KEY).requires_grad_(True)
     with pytest.warns(UserWarning, match="shading-horizon band.*preset='b2'"):
         render(scene, {KEY: v}, spp=1, seed=0)
+
+
+def test_restir_says_when_the_band_term_cannot_run(sphere):
+    """A crop window (the term needs the whole film) leaves the term out: ReSTIR warns once."""
+    from torchir.functions import render
+    from torchir.samplers import ReSTIRSampler
+
+    spec = scene_dict(sphere.spec, {"type": "direct_projective", "guiding": "none"}, RES)
+    spec["sensor"]["film"].update(crop_offset_x=2, crop_offset_y=2, crop_width=RES - 4, crop_height=RES - 4)
+    scene = torchir.Scene.from_dict(spec)
+    v = scene.get(KEY).requires_grad_(True)
+    with pytest.warns(UserWarning, match="shading-horizon term needs .* no crop window"):
+        render(scene, {KEY: v}, spp=1, seed=0, sampler=ReSTIRSampler(scene, preset="b2")).sum().backward()
+    assert v.grad is not None and torch.isfinite(v.grad).all()

@@ -328,6 +328,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.freeze = bool(cfg["freeze"])
         self._frozen_pass = None
         self._boundary_integrators: dict[tuple[bool, bool], mi.Integrator] = {}  # direct_projective, by (secondary, primary)
+        self._band_warned = False  # warned once that the shading-horizon term cannot run (filter, camera)
         self._scene_params: tuple[mi.Scene, Any] | None = None  # (scene, mi.traverse(scene)) of _traversed
         self._edge_guides: dict[str, np.ndarray] = {}  # per mesh, see _shadow_edges.shadow_edge_backward
         self._edge_chains: dict[int, dict[str, Any]] = {}  # per sensor and mesh, likewise
@@ -954,10 +955,19 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         an edge of the graph that a backward pass with Dr.Jit's default flags deletes."""
         meshes = _differentiated_meshes(scene, params)
         sensor_obj = scene.sensors()[sensor]
-        if self.uses_shading_bands(meshes) and _shading_bands.supported(scene, sensor_obj, meshes):
-            w, h = (int(v) for v in sensor_obj.film().crop_size())
-            _shading_bands.band_backward(self, scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 13)[0]),
-                                         candidates=self.silhouette_candidates)
+        if not self.uses_shading_bands(meshes):
+            return
+        if not _shading_bands.supported(scene, sensor_obj, meshes):
+            if not self._band_warned:
+                self._band_warned = True
+                warnings.warn("a moving smooth-shaded mesh: the shading-horizon term needs a pinhole camera with a box "
+                              "filter ('rfilter': {'type': 'box'}) and no crop window; without it a vertex beside a "
+                              "silhouette gets Mitsuba's biased derivative (see torchir.integrators._shading_bands)",
+                              stacklevel=2)
+            return
+        w, h = (int(v) for v in sensor_obj.film().crop_size())
+        _shading_bands.band_backward(self, scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 13)[0]),
+                                     candidates=self.silhouette_candidates)
 
     def uses_silhouette_sampling(self, meshes: list) -> bool:
         """Whether torchir samples the primary silhouettes of ``meshes`` itself (``silhouette_sampling``;
