@@ -219,17 +219,27 @@ def test_frozen_probe_replays_match_a_fresh_scene(red):
         torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
 
 
-def test_probe_records_once_across_refreshes(settled_registry):
+def test_probe_records_once_across_refreshes():
     """New seeds replay one recording. Building the constant lane arrays afresh for every call
-    made the frozen pass re-record on some calls, varying from run to run: this test caught
-    that regression in 1 of 4 runs, so it guards it only partly. (A scene of another test
-    freed between calls re-records too, hence ``settled_registry``.)"""
-    from torchir.functions.render_pixels import _pixel_passes
+    made the frozen pass re-record on some calls, varying from run to run. Run in a fresh
+    process: Dr.Jit keys a recording on every instance in its registry, so a scene of another
+    test freed between two calls re-records too, whatever the code under test does (it failed
+    once in eleven full-suite orders, with the garbage collected and paused beforehand)."""
+    import subprocess
+    import sys
 
-    scene = torchir.Scene.builtin("cbox", resolution=2 * RES)
-    for step in range(12):
-        probe_pixels(scene, {KEY: torch.full((3,), 0.5)}, [(RES, RES)], passes=2, seed=100 + step)
-    assert _pixel_passes(scene)._one_path.n_recordings == 1
+    code = (
+        "import torch, torchir\n"
+        "from torchir.functions.probe import probe_pixels\n"
+        "from torchir.functions.render_pixels import _pixel_passes\n"
+        f"scene = torchir.Scene.builtin('cbox', resolution={2 * RES})\n"
+        "for step in range(12):\n"
+        f"    probe_pixels(scene, {{'{KEY}': torch.full((3,), 0.5)}}, [({RES}, {RES})], passes=2, seed=100 + step)\n"
+        "print('recordings', _pixel_passes(scene)._one_path.n_recordings)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split()[-2:] == ["recordings", "1"], out.stdout[-500:]
 
 
 # ------------------------------------------- Stage 1 and the sampled loss, renderer faked (issue 19)
