@@ -33,9 +33,9 @@ import mitsuba as mi
 import numpy as np
 
 from ..welding import mesh_weld
-from ._primary_forms import _shade, pinhole
-# the same needs (box filter, pinhole, meshes seen whole), sides shaded as far apart, hits as close
-from ._silhouettes import SIDE_OFFSET, VISIBLE_TOLERANCE, checked_sensor, supported
+from ._primary_forms import pinhole
+# the same needs (box filter, pinhole, meshes seen whole) and the same two-sided shading
+from ._silhouettes import checked_sensor, side_difference, supported
 
 __all__ = ["band_backward", "smooth_shaded", "supported"]
 
@@ -231,13 +231,8 @@ def _root_objective(integrator, scene, sensor, grad_in, mesh, face, rows, fixed,
         in_image = (s.x >= 0) & (s.y >= 0) & (s.x < w) & (s.y < h)
         active = real & dr.isfinite(r) & inside & in_image & (norm > 0) & (density > 0)
         hit = (bt[0] * v[0] + bt[1] * v[1] + bt[2] * v[2]) / total
-        lit, band = _shade(integrator, scene, sensor, [s + SIDE_OFFSET * toward_lit, s - SIDE_OFFSET * toward_lit],
-                           seed, seed, None, None, shared=False, candidates=candidates, unroll=False)
-        target = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(mesh))
-        dist = dr.norm(hit - c)
-        visible = (lit.si.is_valid() & (dr.reinterpret_array(mi.UInt32, lit.si.shape) == target)
-                   & (dr.norm(lit.si.p - hit) < VISIBLE_TOLERANCE * dist))
-        radiance = dr.detach(lit.contribution(lit.si) - band.contribution(band.si))
+        visible, radiance = side_difference(integrator, scene, sensor, s, toward_lit, mesh, hit, mi.Point3f(c), seed, seed,
+                                            None, None, False, candidates)
         pixel = mi.Point2i(dr.floor(s))
         active &= visible
         adjoint = dr.gather(mi.Color3f, grad_in.array, mi.UInt32(pixel.y * w + pixel.x), active)

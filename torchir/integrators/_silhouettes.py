@@ -39,7 +39,7 @@ import numpy as np
 from ._primary_forms import _shade, screen_projection
 from ._mesh_edges import CREASE_COSINE, EdgeTable, edges_of, endpoints, faces_side, seen_whole
 
-__all__ = ["checked_sensor", "silhouette_backward", "supported"]
+__all__ = ["checked_sensor", "side_difference", "silhouette_backward", "supported"]
 
 SIDE_OFFSET = 1e-3  # pixels between the silhouette and the two shaded points
 VISIBLE_TOLERANCE = 1e-2  # the inside ray's hit must lie this close to xB, relative to its distance
@@ -101,6 +101,23 @@ def checked_sensor(caller: str, scene: mi.Scene, sensor_index: int, meshes: list
     return sensor
 
 
+def side_difference(integrator, scene: mi.Scene, sensor: mi.Sensor, u: mi.Point2f, toward: mi.Vector2f, mesh: mi.Mesh,
+                    at: mi.Point3f, camera: mi.Point3f, light_seed: int, pick_seed: int, prev, radius, along_normal: bool,
+                    candidates: int | None) -> tuple[mi.Bool, mi.Color3f]:
+    """A boundary sample's two sides: the screen points ``SIDE_OFFSET`` pixels from ``u`` along
+    ``±toward``, each shaded by ``integrator``'s RIS (see ``_primary_forms._shade``; the ``+``
+    side as if seen along its shading normal with ``along_normal``). Returns whether the ``+``
+    side's camera ray meets ``mesh`` at ``at`` (within ``VISIBLE_TOLERANCE`` of its distance from
+    ``camera``: the boundary is not hidden) and the radiance difference ``L(+) - L(-)``, detached."""
+    plus, minus = _shade(integrator, scene, sensor, [u + SIDE_OFFSET * toward, u - SIDE_OFFSET * toward], light_seed,
+                         pick_seed, prev, radius, shared=False, seen_from_above=(0,) if along_normal else (),
+                         candidates=candidates, unroll=False)
+    target = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(mesh))
+    visible = (plus.si.is_valid() & (dr.reinterpret_array(mi.UInt32, plus.si.shape) == target)
+               & (dr.norm(plus.si.p - at) < VISIBLE_TOLERANCE * dr.norm(at - camera)))
+    return visible, dr.detach(plus.contribution(plus.si) - minus.contribution(minus.si))
+
+
 def _silhouette_lengths(mesh, table: EdgeTable, camera: mi.Point3f, project) -> mi.Float:
     """Projected length (pixels) of each edge on the silhouette seen from ``camera``, else 0;
     also of each crease (``table.crease``: a flat-shaded or hard edge, where the shading jumps)
@@ -142,15 +159,8 @@ def _mesh_backward(integrator, scene, sensor, grad_in, mesh, table: EdgeTable, l
         n_in = mi.Vector2f(-tangent.y, tangent.x)
         n_in *= dr.sign(dr.dot(n_in, project(c1) - u))  # towards the mesh
 
-        members = _shade(integrator, scene, sensor, [u + SIDE_OFFSET * n_in, u - SIDE_OFFSET * n_in],
-                         int(mi.sample_tea_32(seed, 1)[0]), seed, prev, radius, shared=False, seen_from_above=() if grazing else (0,),
-                         candidates=candidates, unroll=False)
-        inside, outside = members
-        target = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(mesh))
-        dist = dr.norm(xb - camera)
-        visible = (inside.si.is_valid() & (dr.reinterpret_array(mi.UInt32, inside.si.shape) == target)
-                   & (dr.norm(inside.si.p - xb) < VISIBLE_TOLERANCE * dist))
-        radiance = dr.detach(inside.contribution(inside.si) - outside.contribution(outside.si))
+        visible, radiance = side_difference(integrator, scene, sensor, u, n_in, mesh, xb, camera,
+                                            int(mi.sample_tea_32(seed, 1)[0]), seed, prev, radius, not grazing, candidates)
         pixel = mi.Point2i(dr.floor(u))
         active = (visible & (speed > 0) & (pixel.x >= 0) & (pixel.y >= 0) & (pixel.x < film_w)
                   & (pixel.y < film_h))
