@@ -37,7 +37,7 @@ from ._primary_forms import pinhole
 # the same needs (box filter, pinhole, meshes seen whole) and the same two-sided shading
 from ._silhouettes import checked_sensor, side_difference, supported
 
-__all__ = ["band_backward", "smooth_shaded", "supported"]
+__all__ = ["band_backward", "band_objective", "smooth_shaded", "supported"]
 
 
 
@@ -49,24 +49,43 @@ def smooth_shaded(mesh: mi.Mesh) -> bool:
 def band_backward(integrator, scene: mi.Scene, sensor_index: int, grad_in: mi.TensorXf, meshes: list,
                   samples: int, seed: int, candidates: int | None = None) -> None:
     """Accumulate into the meshes' grad-enabled vertex positions (and the normals computed from
-    them) the shading-horizon derivative of ``sum(grad_in * image)``, ``grad_in`` the image
-    adjoint (H, W, 3) of sensor ``sensor_index``: ``samples`` image lines in all, split over the
-    smooth-shaded ``meshes`` by their candidate triangles' extents. The light on either side is
-    resampled by ``integrator`` (a ``ReSTIRDirectIntegrator``) with ``candidates`` RIS
-    candidates (default its own), without reuse."""
-    sensor = checked_sensor("band_backward", scene, sensor_index, meshes, samples)
+    them) the shading-horizon derivative of ``sum(grad_in * image)``: :func:`band_objective`,
+    back-propagated alone (Dr.Jit's default flags)."""
+    objective = band_objective(integrator, scene, sensor_index, grad_in, meshes, samples, seed, candidates)
+    with dr.resume_grad():
+        if objective is not None and dr.grad_enabled(objective):
+            dr.backward(objective)
+
+
+def band_objective(integrator, scene: mi.Scene, sensor_index: int, grad_in: mi.TensorXf, meshes: list,
+                   samples: int, seed: int, candidates: int | None = None) -> mi.Float | None:
+    """A scalar, zero in value, whose derivative w.r.t. the meshes' grad-enabled vertex positions
+    (and the normals computed from them) is the shading-horizon derivative of
+    ``sum(grad_in * image)``, ``grad_in`` the image adjoint (H, W, 3) of sensor ``sensor_index``:
+    ``samples`` image lines in all, split over the smooth-shaded ``meshes`` by their candidate
+    triangles' extents (None where there is nothing to differentiate). The light on either side
+    is resampled by ``integrator`` (a ``ReSTIRDirectIntegrator``) with ``candidates`` RIS
+    candidates (default its own), without reuse. Back-propagate it together with the other terms
+    that pass through the normals, in one ``dr.backward``: a first pass with default flags deletes
+    the normals' edges to the vertices, and keeping them (``ClearVertices``) is what once
+    corrupted a shared scene's buffers in the suite."""
+    sensor = checked_sensor("band_objective", scene, sensor_index, meshes, samples)
     if not scene.emitters():
-        return
+        return None
     camera = _Camera(sensor)
     found = [(m, _candidates(m, camera)) for m in meshes if smooth_shaded(m)]
     found = [(m, t) for m, t in found if t is not None]
     total = sum(float(t.extent_x.sum() + t.extent_y.sum()) for _, t in found)
     if total <= 0:
-        return
+        return None
+    objective = None
     for i, (mesh, tris) in enumerate(found):
         n = max(1, round(samples * float(tris.extent_x.sum() + tris.extent_y.sum()) / total))
-        _mesh_backward(integrator, scene, sensor, grad_in, mesh, tris, camera, n, int(mi.sample_tea_32(seed, i)[0]),
-                       candidates)
+        term = _mesh_objective(integrator, scene, sensor, grad_in, mesh, tris, camera, n, int(mi.sample_tea_32(seed, i)[0]),
+                               candidates)
+        with dr.resume_grad():
+            objective = term if objective is None else objective + term
+    return objective
 
 
 class _Camera:
@@ -159,12 +178,12 @@ def _band_function(v, nrm, camera_pos, d):
     return n_t, w_t, crosses, e
 
 
-def _mesh_backward(integrator, scene, sensor, grad_in, mesh, tris: _Triangles, camera: _Camera, n: int, seed: int,
-                   candidates) -> None:
+def _mesh_objective(integrator, scene, sensor, grad_in, mesh, tris: _Triangles, camera: _Camera, n: int, seed: int,
+                    candidates) -> mi.Float:
     w, h = camera.width, camera.height
     big_y, big_x = float(tris.extent_y.sum()), float(tris.extent_x.sum())
     if big_x <= 0 or big_y <= 0:
-        return
+        return mi.Float(0.0)
     c = _vec(camera.position)
     dx, dy, d_origin = _vec(camera.dx), _vec(camera.dy), _vec(camera.origin_dir)
     sampler = mi.load_dict({"type": "independent"})
@@ -201,9 +220,7 @@ def _mesh_backward(integrator, scene, sensor, grad_in, mesh, tris: _Triangles, c
                                      c, dx, dy, d_origin, big_x, big_y, n, w, h, int(mi.sample_tea_32(seed, 2 + k)[0]),
                                      candidates))
     with dr.resume_grad():
-        objective = objective[0] + objective[1]
-        if dr.grad_enabled(objective):  # the edges stay (later terms pass through the same normals),
-            dr.backward(objective, flags=dr.ADFlag.ClearVertices)  # the nodes' gradients go (else passed on twice)
+        return objective[0] + objective[1]
 
 
 def _root_objective(integrator, scene, sensor, grad_in, mesh, face, rows, fixed, r, real, c, dx, dy, d_origin,

@@ -889,8 +889,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             self._burn_in(scene, cache.sensor, seed_grad, spp_grad, gst)
             (ray_weight, _), lanes, stats, _ = self._advance(scene, cache.sensor, seed_grad, spp_grad, gst, zero is not None)
             spp, zero = spp_grad, stats.zero
-        if geometry:  # first: the interior's backward clears the normals' edges to the vertices
-            self._band_backward(scene, params, grad_in, cache.sensor, seed_grad, spp_grad)
+        band = self._band_objective(scene, params, grad_in, cache.sensor, seed_grad, spp_grad) if geometry else None
         n = dr.width(lanes.valid)
         with dr.resume_grad():
             if geometry:  # ray-following shading point, as direct_projective (spec §6.7)
@@ -906,7 +905,10 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                 contrib += ray_weight * f0 * w0
             pix = dr.arange(mi.UInt32, n) // spp
             delta_l = dr.gather(mi.Color3f, grad_in.array, pix) / spp
-            dr.backward(dr.dot(contrib, delta_l))
+            if band is None:
+                dr.backward(dr.dot(contrib, delta_l))
+            else:  # one pass: both go through the normals computed from the vertices
+                dr.backward(dr.sum(dr.dot(contrib, delta_l)) + band)
         if geometry:
             self._boundary_backward(scene, params, grad_in, cache.sensor, seed_grad, spp_grad)
         self.timings["backward"] = _tic() - t0
@@ -928,7 +930,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         meshes = _differentiated_meshes(scene, params)
         sensor_obj = scene.sensors()[sensor]
         edges = self.shadow_edge_sampling and _shadow_edges.supported(scene, sensor_obj, meshes)
-        bands = self.uses_shading_bands(meshes) and _shading_bands.supported(scene, sensor_obj, meshes)  # see _band_backward
+        bands = self.uses_shading_bands(meshes) and _shading_bands.supported(scene, sensor_obj, meshes)  # see _band_objective
         silhouettes = (bands or self.uses_silhouette_sampling(meshes)) and _silhouettes.supported(scene, sensor_obj, meshes)
         if not (edges and silhouettes):
             # Mitsuba's edges come from vertex indices: on meshes that repeat positions (uv seams,
@@ -948,15 +950,17 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                                                self.edge_light_candidates, self.edge_candidates, chains, self.edge_chain_cap,
                                                self.moving_geometry_m_cap if self.moving_geometry_m_cap > 0 else self.edge_chain_cap)
 
-    def _band_backward(self, scene: mi.Scene, params: Any, grad_in: mi.TensorXf, sensor: int, seed: int, spp: int) -> None:
+    def _band_objective(self, scene: mi.Scene, params: Any, grad_in: mi.TensorXf, sensor: int, seed: int,
+                        spp: int) -> mi.Float | None:
         """The shading-horizon term of the differentiated smooth meshes (``shading_bands``,
-        where :func:`_shading_bands.supported`; ``spp`` image lines a pixel). It runs before the
-        other terms: its derivative reaches the vertices through the normals computed from them,
-        an edge of the graph that a backward pass with Dr.Jit's default flags deletes."""
+        where :func:`_shading_bands.supported`; ``spp`` image lines a pixel) as an objective that
+        the interior term's backward pass carries: both reach the vertices through the normals
+        computed from them, an edge of the graph that Dr.Jit's default flags delete after one
+        pass (:func:`_shading_bands.band_objective`). None where it does not apply."""
         meshes = _differentiated_meshes(scene, params)
         sensor_obj = scene.sensors()[sensor]
         if not self.uses_shading_bands(meshes):
-            return
+            return None
         if not _shading_bands.supported(scene, sensor_obj, meshes):
             if not self._band_warned:
                 self._band_warned = True
@@ -964,10 +968,10 @@ class ReSTIRDirectIntegrator(RBIntegrator):
                               "filter ('rfilter': {'type': 'box'}) and no crop window; without it a vertex beside a "
                               "silhouette gets Mitsuba's biased derivative (see torchir.integrators._shading_bands)",
                               stacklevel=2)
-            return
+            return None
         w, h = (int(v) for v in sensor_obj.film().crop_size())
-        _shading_bands.band_backward(self, scene, sensor, grad_in, meshes, spp * w * h, int(mi.sample_tea_32(seed, 13)[0]),
-                                     candidates=self.silhouette_candidates)
+        return _shading_bands.band_objective(self, scene, sensor, grad_in, meshes, spp * w * h,
+                                             int(mi.sample_tea_32(seed, 13)[0]), candidates=self.silhouette_candidates)
 
     def uses_silhouette_sampling(self, meshes: list) -> bool:
         """Whether torchir samples the primary silhouettes of ``meshes`` itself (``silhouette_sampling``;
