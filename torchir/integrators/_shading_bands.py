@@ -216,22 +216,21 @@ def _mesh_objective(integrator, scene, sensor, grad_in, mesh, tris: _Triangles, 
         roots = [dr.select(linear, -qc / qb, root_q / qa), dr.select(linear, dr.nan, qc / root_q)]
     objective = []
     for k, r in enumerate(roots):
-        objective.append(_root_objective(integrator, scene, sensor, grad_in, mesh, face, rows, fixed, r, (disc >= 0) | linear,
+        objective.append(_root_objective(integrator, scene, sensor, grad_in, mesh, face, v, nrm, rows, fixed, r, (disc >= 0) | linear,
                                      c, dx, dy, d_origin, big_x, big_y, n, w, h, int(mi.sample_tea_32(seed, 2 + k)[0]),
                                      candidates))
     with dr.resume_grad():
         return objective[0] + objective[1]
 
 
-def _root_objective(integrator, scene, sensor, grad_in, mesh, face, rows, fixed, r, real, c, dx, dy, d_origin,
+def _root_objective(integrator, scene, sensor, grad_in, mesh, face, v, nrm, rows, fixed, r, real, c, dx, dy, d_origin,
                    big_x, big_y, n, w, h, seed, candidates) -> mi.Float:
     """The attached objective of one root of each line's quadratic: its derivative is the
     root's share of the band term (zero where the root is complex, off the triangle or hidden)."""
     with dr.suspend_grad():
         s = mi.Point2f(dr.select(rows, r, fixed), dr.select(rows, fixed, r))
         d = d_origin + s.x * dx + s.y * dy
-        v, nrm = _triangle(mesh, face)
-        n_t, w_t, crosses, e = _band_function(v, nrm, c, d)
+        n_t, w_t, crosses, e = _band_function(v, nrm, c, d)  # v, nrm: the faces' (detached) corners
         bt = [dr.dot(x, d) for x in crosses]
         total = bt[0] + bt[1] + bt[2]
         inside = (total != 0) & dr.all(mi.Vector3f(bt[0], bt[1], bt[2]) * dr.sign(total) >= 0)

@@ -328,7 +328,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         self.freeze = bool(cfg["freeze"])
         self._frozen_pass = None
         self._boundary_integrators: dict[tuple[bool, bool], mi.Integrator] = {}  # direct_projective, by (secondary, primary)
-        self._band_warned = False  # warned once that the shading-horizon term cannot run (filter, camera)
+        self._band_warned = False  # warned once that the shading-horizon term cannot run (see _band_objective)
         self._scene_params: tuple[mi.Scene, Any] | None = None  # (scene, mi.traverse(scene)) of _traversed
         self._edge_guides: dict[str, np.ndarray] = {}  # per mesh, see _shadow_edges.shadow_edge_backward
         self._edge_chains: dict[int, dict[str, Any]] = {}  # per sensor and mesh, likewise
