@@ -11,7 +11,7 @@ from PIL import Image
 
 import torchir
 from torchir.imageio import read_image, to_srgb, write_image
-from torchir.jpeg import ChromaCorrection, chroma_sampling, subsample_chroma
+from torchir.jpeg import CodecCorrection, chroma_sampling, jpeg_round_trip, quantization_tables, subsample_chroma
 
 from .helpers import file_target_step
 
@@ -59,6 +59,61 @@ def test_the_filter_is_what_the_codec_did(tmp_path, room, quality):
     assert torch.equal(subsample_chroma(room, (1, 1)), room)
 
 
+# libjpeg's tables at quality 50 are the JPEG standard's (ITU T.81 Annex K), in natural order: rows 0 and 1
+ANNEX_K_LUMA = ([16, 11, 10, 16, 24, 40, 51, 61], [12, 12, 14, 19, 26, 58, 60, 55])
+ANNEX_K_CHROMA = ([17, 18, 24, 47, 99, 99, 99, 99], [18, 21, 26, 66, 99, 99, 99, 99])
+
+
+def test_quantisation_tables_are_read_in_natural_order(tmp_path, room):
+    rgb = Image.fromarray(_srgb_bytes(room))
+    rgb.save(tmp_path / "q50.jpg", quality=50, subsampling=2)
+    tables = quantization_tables(tmp_path / "q50.jpg")
+    assert tables.shape == (3, 8, 8)
+    assert tables[0, :2].tolist() == [list(map(float, r)) for r in ANNEX_K_LUMA]
+    for k in (1, 2):
+        assert tables[k, :2].tolist() == [list(map(float, r)) for r in ANNEX_K_CHROMA]
+    rgb.convert("L").save(tmp_path / "grey.jpg")
+    write_image(tmp_path / "photo.png", room)
+    (tmp_path / "cut.jpg").write_bytes((tmp_path / "q50.jpg").read_bytes()[:100])
+    for name in ("grey.jpg", "photo.png", "cut.jpg"):
+        assert quantization_tables(tmp_path / name) is None, name
+
+
+@pytest.mark.parametrize("writer, quality", [("mitsuba", 75), ("mitsuba", 90), ("pil444", 75), ("pil422", 60)])
+def test_the_round_trip_is_what_the_codec_did(tmp_path, room, writer, quality):
+    """Re-encoding with the file's own tables and subsampling gives back the decoded file exactly
+    (the image itself is 4.5-6 codes off on average)."""
+    if writer == "mitsuba":
+        path = _write_jpeg_with_mitsuba(tmp_path / "photo.jpg", room, quality)
+    else:
+        path = tmp_path / "photo.jpg"
+        Image.fromarray(_srgb_bytes(room)).save(path, quality=quality, subsampling={"pil444": 0, "pil422": 1}[writer])
+    decoded = read_image(path)
+    codes = lambda a: torch.round(255 * to_srgb(a.clamp(0, 1)))  # noqa: E731
+    emulated = jpeg_round_trip(room, quantization_tables(path), chroma_sampling(path))
+    assert torch.equal(codes(emulated), codes(decoded))
+    assert float((codes(room) - codes(decoded)).abs().mean()) > 3.0  # the codec did change the photo
+    assert emulated.dtype == room.dtype and jpeg_round_trip(room[None], quantization_tables(path), (2, 2)).shape == (1, *room.shape)
+    bright = room.clone()
+    bright[:, :4, :4] = 7.0
+    assert torch.equal(jpeg_round_trip(bright, quantization_tables(path), (2, 2))[:, :4, :4], bright[:, :4, :4])  # HDR kept
+    with pytest.raises(ValueError, match="tables"):
+        jpeg_round_trip(room, torch.ones(2, 8, 8))
+    with pytest.raises(ValueError, match="subsampling"):
+        jpeg_round_trip(room, quantization_tables(path), (4, 1))
+
+
+def test_separate_chroma_tables_are_kept(tmp_path, room):
+    """A file whose Cr table differs from its Cb table (three tables) is re-encoded with all three."""
+    luma, cb, cr = ([int(3 + (k % 8) + offset) for k in range(64)] for offset in (0, 10, 20))
+    path = tmp_path / "three.jpg"
+    Image.fromarray(_srgb_bytes(room)).save(path, qtables=[luma, cb, cr], subsampling=2)
+    tables = quantization_tables(path)
+    assert not torch.equal(tables[1], tables[2])
+    codes = lambda a: torch.round(255 * to_srgb(a.clamp(0, 1)))  # noqa: E731
+    assert torch.equal(codes(jpeg_round_trip(room, tables, (2, 2))), codes(read_image(path)))
+
+
 def test_filter_gradcheck_and_shapes():
     x = (torch.rand(2, 3, 5, 7, dtype=torch.float64) * 0.9 + 0.05).requires_grad_()
     assert torch.autograd.gradcheck(lambda t: subsample_chroma(t, (2, 2)), (x,))
@@ -71,7 +126,7 @@ def test_filter_gradcheck_and_shapes():
 def test_correction_is_linear_in_the_render_and_uses_the_running_mean():
     torch.manual_seed(0)
     clean = torch.rand(3, 8, 8, dtype=torch.float64) * 0.8 + 0.1
-    correct = ChromaCorrection(window=64)
+    correct = CodecCorrection(window=64)
     for _ in range(200):  # noisy renders: the correction comes from their mean, not from one of them
         out = correct(clean + 0.2 * torch.randn_like(clean), view=3, factors=(2, 2))
     mean = correct.means[3][0]
@@ -82,7 +137,7 @@ def test_correction_is_linear_in_the_render_and_uses_the_running_mean():
     torch.testing.assert_close(grad, torch.arange(out.numel(), dtype=grad.dtype).reshape(out.shape))  # d out / d render = I
     assert correct(render, view=4, factors=(1, 1)) is render
     with pytest.raises(ValueError, match="window"):
-        ChromaCorrection(window=0)
+        CodecCorrection(window=0)
 
 
 def _fit_lamp(module, target: Path, steps: int = 200) -> torch.Tensor:
@@ -91,7 +146,7 @@ def _fit_lamp(module, target: Path, steps: int = 200) -> torch.Tensor:
     truth = module.scene.get("light.emitter.radiance.value")
     latent = module.scene_parameters[0].latent
     latent.data.copy_(truth * 0.9)
-    module._chroma_correction = None
+    module._codec_correction = None
     optimiser = torch.optim.Adam([latent], lr=0.1)
     trail = []
     for i in range(steps):
@@ -117,7 +172,21 @@ def test_a_jpeg_target_gives_the_pngs_colour(tmp_path, monkeypatch):
     jpeg = _write_jpeg_with_mitsuba(tmp_path / "photo.jpg", photo, 95)
     png = _fit_lamp(module, tmp_path / "photo.png")
     corrected = (_fit_lamp(module, jpeg) - png) / png
-    monkeypatch.setattr(ChromaCorrection, "__call__", lambda self, image, view, factors, srgb=True: image)
+    monkeypatch.setattr(CodecCorrection, "__call__", lambda self, image, view, factors, srgb=True, tables=None: image)
     uncorrected = (_fit_lamp(module, jpeg) - png) / png
     assert float(corrected.abs().max()) < 0.015, corrected
     assert float(uncorrected.abs().max()) > 0.015, uncorrected  # the codec's shift is there to correct
+
+
+def test_the_jpeg_benchmark_reports_offsets_in_seed_noise():
+    """``torchir bench jpeg``'s table from known answers: the paired offset in percent and the
+    offset of the means in the PNG's seed standard deviations."""
+    from torchir.bench.jpeg import offsets, table
+
+    answers = {"png": [[10.0, 5.0, 2.0], [10.2, 5.0, 2.2]], "q75 codec": [[10.1, 5.5, 2.0], [10.3, 5.5, 2.2]]}
+    row = offsets(answers)["q75 codec"]
+    sd = torch.tensor([10.0, 10.2]).std().item()
+    assert row["percent"][1] == pytest.approx(10.0) and row["percent"][2] == pytest.approx(0.0, abs=1e-9)
+    assert row["in_seed_sd"][0] == pytest.approx(0.1 / sd)
+    text = table({"answers": answers})
+    assert "| q75 | codec | +0.99 %, +10.00 %, +0.00 % |" in text

@@ -38,7 +38,7 @@ SUITE_TESTS = {  # suite -> the test module that runs it (at a smaller size)
     "mesh_gradients": "test_mesh_gradients", "combined": "test_bench_combined", "stepcost": "test_bench_stepcost",
     "scaleup": "test_bench_scaleup",
 }
-NOT_RUN = {"overhead", "adaptive", "denoiser", "loi", "soak", "all"}  # minutes each: `torchir bench all --quick`, not CI
+NOT_RUN = {"overhead", "adaptive", "denoiser", "loi", "soak", "jpeg", "all"}  # minutes each: `torchir bench all --quick`, not CI
 ELSEWHERE = {  # command -> "module::test" that runs it
     "bash scripts/install.sh && torchir fit --config configs/quickstart.yaml": "test_readme_commands::test_fit_commands_as_the_readme_writes_them",
     "torchir fit --config configs/multiview.yaml --trainer.strategy ddp --trainer.devices 2 --trainer.accelerator cpu":

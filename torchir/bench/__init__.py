@@ -31,6 +31,7 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "stepcost": "torchir.bench.stepcost",
     "scaleup": "torchir.bench.scaleup",
     "soak": "torchir.bench.soak",
+    "jpeg": "torchir.bench.jpeg",
 }
 ALL = tuple(SUITES)
 

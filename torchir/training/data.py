@@ -11,7 +11,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from ..functions import render
 from ..imageio import COLORSPACES, ENCODED_SUFFIXES, ColorSpace, is_lossy, read_image
-from ..jpeg import chroma_sampling
+from ..jpeg import chroma_sampling, quantization_tables
 
 __all__ = ["ViewDataModule", "ViewDataset", "load_image"]
 
@@ -35,29 +35,35 @@ def _resolve_saturation(saturation: Union[float, str, None], files: Optional[lis
 
 class ViewDataset(Dataset):
     """Item ``i``: ``{"view": sensor index, "target": (C, H, W) image, "lossy": bool, "chroma":
-    (h, v, srgb)}``.
+    (h, v, srgb), "quantisation": (3, 8, 8)}``.
 
     ``lossy``: whether each target was read from a lossy file (JPEG), for
     :func:`torchir.imageio.clipped_mask` (default: none was). ``chroma``: the file's chroma
     subsampling and whether it stores sRGB values, for :func:`torchir.jpeg.subsample_chroma`
-    (default ``(1, 1, 1)``: none)."""
+    (default ``(1, 1, 1)``: none). ``quantisation``: the file's JPEG quantisation tables for
+    :func:`torchir.jpeg.jpeg_round_trip` (zeros, the default: not a JPEG)."""
 
     def __init__(self, views: list[int], targets: list[torch.Tensor], lossy: Optional[list[bool]] = None,
-                 chroma: Optional[list[tuple[int, int, bool]]] = None) -> None:
+                 chroma: Optional[list[tuple[int, int, bool]]] = None,
+                 quantisation: Optional[list[Optional[torch.Tensor]]] = None) -> None:
         self.views, self.targets = views, targets
+        self.quantisation = [None] * len(views) if quantisation is None else list(quantisation)
         self.lossy = [False] * len(views) if lossy is None else list(lossy)
         self.chroma = [(1, 1, True)] * len(views) if chroma is None else list(chroma)
         if len(self.lossy) != len(views):
             raise ValueError(f"lossy has {len(self.lossy)} flag(s) for {len(views)} view(s)")
         if len(self.chroma) != len(views):
             raise ValueError(f"chroma has {len(self.chroma)} entr(ies) for {len(views)} view(s)")
+        if len(self.quantisation) != len(views):
+            raise ValueError(f"quantisation has {len(self.quantisation)} entr(ies) for {len(views)} view(s)")
 
     def __len__(self) -> int:
         return len(self.views)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         return {"view": torch.tensor(self.views[i]), "target": self.targets[i], "lossy": torch.tensor(self.lossy[i]),
-                "chroma": torch.tensor([int(c) for c in self.chroma[i]])}
+                "chroma": torch.tensor([int(c) for c in self.chroma[i]]),
+                "quantisation": torch.zeros(3, 8, 8) if self.quantisation[i] is None else self.quantisation[i].float()}
 
 
 class ViewDataModule(pl.LightningDataModule):
@@ -114,6 +120,7 @@ class ViewDataModule(pl.LightningDataModule):
         self.targets: list[torch.Tensor] = []
         self.lossy: list[bool] = []  # per entry of views: its target file is lossy (JPEG)
         self.chroma: list[tuple[int, int, bool]] = []  # per entry of views: its file's chroma subsampling, sRGB values
+        self.quantisation: list[Optional[torch.Tensor]] = []  # per entry of views: its JPEG's quantisation tables
 
     def setup(self, stage: str) -> None:
         if self.targets:
@@ -142,6 +149,7 @@ class ViewDataModule(pl.LightningDataModule):
             self.lossy = [is_lossy(path) for path in self.target_files]
             srgb = self.colorspace != "linear"
             self.chroma = [(*chroma_sampling(path), srgb) if lossy else (1, 1, srgb) for path, lossy in zip(self.target_files, self.lossy)]
+            self.quantisation = [quantization_tables(path) if lossy else None for path, lossy in zip(self.target_files, self.lossy)]
 
     def _read_target(self, path: str, view: int, scene) -> torch.Tensor:
         """One target file as ``(3, H, W)`` linear radiance, checked against sensor ``view``."""
@@ -173,7 +181,7 @@ class ViewDataModule(pl.LightningDataModule):
             raise ValueError(f"data.views_per_step must be in [1, {len(self.views)}], got {per_step}")
         if per_step % world:
             raise ValueError(f"data.views_per_step ({per_step}) must be divisible by the number of processes ({world})")
-        dataset = ViewDataset(self.views, self.targets, self.lossy or None, self.chroma or None)
+        dataset = ViewDataset(self.views, self.targets, self.lossy or None, self.chroma or None, self.quantisation or None)
         sampler = None
         if world > 1:
             # Each view stays with one process (its rank: position mod world). Lightning's own

@@ -16,7 +16,7 @@ from ..scene import _unbindable_hint
 from ..functions import render
 from ..derived import declare as declare_derived
 from ..imageio import clipped_mask
-from ..jpeg import ChromaCorrection
+from ..jpeg import CodecCorrection
 from .parameters import ParameterConfig, SceneParameter, resolve_value
 
 __all__ = ["InverseRenderingModule", "NonFiniteLossError"]
@@ -359,9 +359,10 @@ class InverseRenderingModule(pl.LightningModule):
         else:
             guide = self.guide_buffers(views, step) if getattr(self.denoiser, "needs_guide", False) else None
             images = self.render_views(views, step)
-            if "chroma" in batch:  # a JPEG target's chroma is subsampled: add what the codec would change in the render
-                images = torch.stack([self.chroma_correction(image, view, (h, v), bool(srgb))
-                                      for image, view, (h, v, srgb) in zip(images, views, batch["chroma"].tolist())])
+            if "chroma" in batch:  # a JPEG target: add what the codec would change in the render
+                tables = batch.get("quantisation", [None] * len(views))
+                images = torch.stack([self.codec_correction(image, view, (h, v), bool(srgb), _tables(table))
+                                      for image, view, (h, v, srgb), table in zip(images, views, batch["chroma"].tolist(), tables)])
             saturation = self.target_saturation
             if saturation is not None:
                 # A clipped photo pixel only says "at least this bright": leave it out of the loss (the
@@ -430,12 +431,13 @@ class InverseRenderingModule(pl.LightningModule):
             logger.log_metrics(row, step=step)
 
     @property
-    def chroma_correction(self) -> ChromaCorrection:
-        """For JPEG targets with subsampled chroma: the codec's change, from a running mean of each
-        view's renders (:class:`torchir.jpeg.ChromaCorrection`; kept in memory, not checkpointed)."""
-        if getattr(self, "_chroma_correction", None) is None:
-            self._chroma_correction = ChromaCorrection()
-        return self._chroma_correction
+    def codec_correction(self) -> CodecCorrection:
+        """For JPEG targets: the codec's change (quantisation, chroma subsampling), from a running
+        mean of each view's renders (:class:`torchir.jpeg.CodecCorrection`; kept in memory, not
+        checkpointed)."""
+        if getattr(self, "_codec_correction", None) is None:
+            self._codec_correction = CodecCorrection()
+        return self._codec_correction
 
     @property
     def target_saturation(self) -> Optional[float]:
@@ -602,3 +604,8 @@ def _resolve_sampler(sampler: Optional[dict[str, Any]], scene: Scene) -> Any:
     if sampler.get("type") == "none":
         return None
     return _registered("sampler", sampler, SAMPLERS, scene)
+
+
+def _tables(table: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
+    """A batch entry's JPEG quantisation tables, or None where the target is not a JPEG (zeros)."""
+    return None if table is None or not bool(table.any()) else table
