@@ -52,3 +52,21 @@ class NaNAfterLoss(nn.Module):
         self.calls += 1
         loss = (rendered - target).square().mean()
         return loss * float("nan") if self.calls > self.steps else loss
+
+
+def run_in_fresh_process(code: str, timeout: float = 300.0) -> str:
+    """Run ``code`` (a Python program that asserts what it checks) in a new interpreter and
+    return its stdout; fails the calling test with the program's stderr if it did.
+
+    For tests of frozen render passes on scenes of their own: Dr.Jit 1.5 traverses, and after a
+    frozen replay assigns, every instance in its registry, so other tests' live scenes are part of
+    each recording. In one fixed full-suite order (pytest-randomly seed 4242) the session ``cbox``
+    came out of ``test_frozen_replays_match_a_fresh_unfrozen_call`` with its ``large-box`` vertex
+    buffer pointing at freed memory (its values changing test after test); with the pixel passes
+    unfrozen, or run alone, it did not. In a fresh process only the test's own scenes exist."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout

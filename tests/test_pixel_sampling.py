@@ -18,6 +18,7 @@ from torchir.modules import L2Loss
 from torchir.samplers import AdaptivePixelSampler, LossPixelSampler, PixelBatch, UniformPixelSampler, sampled_loss
 
 from .conftest import RES
+from .helpers import run_in_fresh_process
 
 KEY = "red.reflectance.value"
 
@@ -205,18 +206,27 @@ def test_sampler_state_is_checkpointed(cbox):
     assert math.isclose(float(other.sampler.pdf.sum()), 1.0, rel_tol=1e-12)
 
 
-def test_frozen_probe_replays_match_a_fresh_scene(red):
+def test_frozen_probe_replays_match_a_fresh_scene():
     """Stage-1 probes are frozen per scene; a replay (new values, tangent and seed) equals the
-    same probe on a freshly loaded scene, whose first call is traced."""
-    grids = [(RES // 2, RES // 2), (RES // 4, RES // 4)]
-    replayed, fresh = (torchir.Scene.builtin("cbox", resolution=RES) for _ in range(2))
-    for step in range(3):
-        value, tangent = torch.full((3,), 0.2 + 0.1 * step), torch.tensor([1.0, -1.0, (-1.0) ** step])
-        args = dict(grids=grids, passes=2, seed=11 + step, tangents={KEY: tangent})
-        radiance, derivative = probe_pixels(replayed, {KEY: value}, **args)
-    reference_radiance, reference_derivative = probe_pixels(fresh, {KEY: value}, **args)
-    for got, want in zip(radiance + derivative, reference_radiance + reference_derivative):
-        torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+    same probe on a freshly loaded scene, whose first call is traced. In a fresh process, as
+    :func:`tests.helpers.run_in_fresh_process` says why."""
+    code = f"""
+import torch, torchir
+from torchir.functions.probe import probe_pixels
+
+key = "{KEY}"
+grids = [({RES // 2}, {RES // 2}), ({RES // 4}, {RES // 4})]
+replayed, fresh = (torchir.Scene.builtin("cbox", resolution={RES}) for _ in range(2))
+for step in range(3):
+    value, tangent = torch.full((3,), 0.2 + 0.1 * step), torch.tensor([1.0, -1.0, (-1.0) ** step])
+    args = dict(grids=grids, passes=2, seed=11 + step, tangents={{key: tangent}})
+    radiance, derivative = probe_pixels(replayed, {{key: value}}, **args)
+reference_radiance, reference_derivative = probe_pixels(fresh, {{key: value}}, **args)
+for got, want in zip(radiance + derivative, reference_radiance + reference_derivative):
+    torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+print("ok")
+"""
+    assert run_in_fresh_process(code).split()[-1] == "ok"
 
 
 def test_probe_records_once_across_refreshes():

@@ -11,6 +11,7 @@ import torchir
 from torchir.functions import render, render_pixels
 
 from .conftest import RES
+from .helpers import run_in_fresh_process
 
 KEY = "red.reflectance.value"
 ALL = torch.arange(RES * RES)
@@ -120,34 +121,36 @@ def test_warns_about_non_box_filters():
 
 def test_frozen_replays_match_a_fresh_unfrozen_call():
     """From the second use of a pixel count, the passes are frozen; a replay with new pixels,
-    values and seeds gives what a fresh (unfrozen) scene gives for the same call."""
-    import torchir
+    values and seeds gives what a fresh (unfrozen) scene gives for the same call. In a fresh
+    process (:func:`tests.helpers.run_in_fresh_process`: in the shared worker this test's replays
+    once left the session scene's mesh pointing at freed memory)."""
+    code = f"""
+import torch, torchir
+from torchir.functions import render_pixels
+from torchir.functions.render_pixels import _pixel_passes
 
-    key = "red.reflectance.value"
-    replayed, fresh = (torchir.Scene.builtin("cbox", resolution=RES) for _ in range(2))
-    generator = torch.Generator().manual_seed(0)
+key = "red.reflectance.value"
+replayed, fresh = (torchir.Scene.builtin("cbox", resolution={RES}) for _ in range(2))
+generator = torch.Generator().manual_seed(0)
 
-    def call(scene, index, value, seed):
-        red = value.clone().requires_grad_()
-        out = render_pixels(scene, {key: red}, index, spp=2, seed=seed)
-        out.sum().backward()
-        return out.detach(), red.grad
+def call(scene, index, value, seed):
+    red = value.clone().requires_grad_()
+    out = render_pixels(scene, {{key: red}}, index, spp=2, seed=seed)
+    out.sum().backward()
+    return out.detach(), red.grad
 
-    for step in range(3):  # use 1 traces, use 2 records, use 3 replays
-        index = torch.randint(0, RES * RES, (40,), generator=generator)
-        value = torch.rand(3, generator=generator)
-        out, grad = call(replayed, index, value, seed=step)
-    reference_out, reference_grad = call(fresh, index, value, seed=2)
-    assert render_pixels_passes_frozen(replayed)
-    torch.testing.assert_close(out, reference_out, rtol=1e-6, atol=1e-7)
-    torch.testing.assert_close(grad, reference_grad, rtol=1e-5, atol=1e-7)
-
-
-def render_pixels_passes_frozen(scene) -> bool:
-    from torchir.functions.render_pixels import _pixel_passes
-
-    passes = _pixel_passes(scene)
-    return passes._primal.n_recordings >= 1 and passes._adjoint.n_recordings >= 1
+for step in range(3):  # use 1 traces, use 2 records, use 3 replays
+    index = torch.randint(0, {RES * RES}, (40,), generator=generator)
+    value = torch.rand(3, generator=generator)
+    out, grad = call(replayed, index, value, seed=step)
+reference_out, reference_grad = call(fresh, index, value, seed=2)
+passes = _pixel_passes(replayed)
+assert passes._primal.n_recordings >= 1 and passes._adjoint.n_recordings >= 1
+torch.testing.assert_close(out, reference_out, rtol=1e-6, atol=1e-7)
+torch.testing.assert_close(grad, reference_grad, rtol=1e-5, atol=1e-7)
+print("ok")
+"""
+    assert run_in_fresh_process(code).split()[-1] == "ok"
 
 
 def test_each_view_samples_its_own_shutter_interval():
