@@ -144,8 +144,13 @@ def test_view_dataset():
     ds = ViewDataset([3, 5], targets)
     assert len(ds) == 2
     item = ds[1]
-    assert set(item) == {"view", "target", "lossy", "chroma"}
+    assert set(item) == {"view", "target", "lossy", "chroma", "quantisation"}
     assert item["chroma"].tolist() == [1, 1, 1]  # no chroma subsampling, sRGB values
+    assert item["quantisation"].shape == (3, 8, 8) and not bool(item["quantisation"].any())  # not a JPEG
+    tables = torch.arange(192.0).reshape(3, 8, 8)
+    assert torch.equal(ViewDataset([3, 5], targets, quantisation=[None, tables])[1]["quantisation"], tables)
+    with pytest.raises(ValueError, match="quantisation has 1"):
+        ViewDataset([3, 5], targets, quantisation=[None])
     assert item["view"].dtype == torch.int64 and int(item["view"]) == 5 and item["view"].dim() == 0
     assert item["target"] is targets[1]
     assert item["lossy"].dtype == torch.bool and item["lossy"].dim() == 0 and not bool(item["lossy"])
