@@ -12,7 +12,7 @@ runs with longer chains (burn-in passes, chain cap ``m_cap``). Errors are RMS ov
     python scripts/restir_chains.py ajar_painting --floor 0.00241 --steps 32 --chains 8192:131072:4 --light-guide 0.5
 
 Gradient paths: the samplers' default (``decorrelated`` since issue 39: a second resampling pass
-a step); ``--grad-paths shared`` re-evaluates the image's paths, as the README's figures measured
+a step); ``--grad-paths shared`` re-evaluates the image's paths, as the figures in docs/restir-measurements.md measured
 before. At the fixed adjoint either is unbiased; the step times differ.
 """
 from __future__ import annotations

@@ -27,7 +27,7 @@ at 512^2 (full: 30 / 75 / none over 150 steps, 75 best; pixels: 150 / 300): a pi
 5 % pixel run levels off at a higher error than the full render (its gradient is noisier per
 second); the decay lowers that floor for every method.
 
-Measured (seed 0, 2 cores; README): adaptive reaches the decayed full render's final error in
+Measured (seed 0, 2 cores; docs/pixel-sampling.md): adaptive reaches the decayed full render's final error in
 0.47x its time at 512^2; on ``textured_wall_256`` and ``multiview_16`` the full render wins
 (the parameters' footprint covers most pixels). A 16-view pixel step costs 0.19x a full step
 (one wavefront over every view's draws).

@@ -76,7 +76,7 @@
        gradient re-evaluates the primal's paths (paper, Alg. P4; no second pass), unbiased
        only for a loss linear in the image: for L2,
        ``E[2 (I - T) dI] = 2 (E[I] - T) E[dI] + 2 Cov(I, dI)``, so the fit is pulled off the
-       truth in proportion to the image's variance (README, "Gradient paths").
+       truth in proportion to the image's variance (docs/restir.md, "Gradient paths").
      - decorrelated
    * - ``forward_only``
      - bool

@@ -44,7 +44,7 @@ class ReSTIRSampler:
             emitters, no media, box filter).
         candidates: M, light candidates per camera sample (streaming RIS).
         neighbors: k, reservoirs of the previous step combined per camera sample (8 and 16
-            candidates: the lowest error x time of k in 2-16, M in 8-16 at 128², README).
+            candidates: the lowest error x time of k in 2-16, M in 8-16 at 128², docs/restir-measurements.md).
         radius: neighbour search radius in world units (``None``: 2 pixel footprints).
         m_cap: cap on M (``None``: 2 * candidates for searched neighbours, 64 * candidates
             for a lane's own chain; spec D2's 20 * candidates measured worse with searched
@@ -62,7 +62,7 @@ class ReSTIRSampler:
             are unbiased only for a loss linear in the image: for L2,
             ``E[2 (I - T) dI] = 2 (E[I] - T) E[dI] + 2 Cov(I, dI)``, and the covariance term
             pulls the fit off the truth in proportion to the image's variance, which is largest
-            where light sampling is hard (README, "Gradient paths"). Decorrelated paths remove
+            where light sampling is hard (docs/restir.md, "Gradient paths"). Decorrelated paths remove
             that term for every preset (``tests/test_restir_grad_paths.py``); with reuse the
             gradient's chain burns in too, once, at the first backward.
         nn_backend: ``"auto"`` (timed) | ``"kdtree"`` (scipy) | ``"grid"`` (Dr.Jit) | ``"screen"``
