@@ -60,10 +60,13 @@ def run_in_fresh_process(code: str, timeout: float = 300.0) -> str:
 
     For tests of frozen render passes on scenes of their own: Dr.Jit 1.5 traverses, and after a
     frozen replay assigns, every instance in its registry, so other tests' live scenes are part of
-    each recording. In one fixed full-suite order (pytest-randomly seed 4242) the session ``cbox``
-    came out of ``test_frozen_replays_match_a_fresh_unfrozen_call`` with its ``large-box`` vertex
-    buffer pointing at freed memory (its values changing test after test); with the pixel passes
-    unfrozen, or run alone, it did not. In a fresh process only the test's own scenes exist."""
+    each recording. In one fixed full-suite order (pytest-randomly seed 4242) the session
+    ``cbox``'s ``large-box`` vertex buffer was read back changed after
+    ``test_frozen_replays_match_a_fresh_unfrozen_call`` (and then after later tests: memory freed
+    and reused); with the pixel passes unfrozen it was not (one run). With this test in its own
+    process the same order still showed the change, after another test: the buffer is freed
+    earlier than it is seen, so isolation does not remove the cause, only this test's exposure.
+    In a fresh process only the test's own scenes exist."""
     import subprocess
     import sys
 
