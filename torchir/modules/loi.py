@@ -811,7 +811,7 @@ class LOILoss(nn.Module):
 
     def memory_estimate(self, shape: Sequence[int], dtype: torch.dtype = torch.float32) -> int:
         """Approximate peak bytes of one forward + backward at image ``shape`` ((B,)C,H,W)
-        on the torch path: backward keeps ~(2 + |alphas|) ``(B, C, K, Hp, Wp)`` tensors per
+        on the torch path: backward keeps ~``2 + len(alphas)`` ``(B, C, K, Hp, Wp)`` tensors per
         sigma (low-memory mode: ~5 in all), plus the cached target CDFs (one per sigma). An
         upper bound: the small-alpha terms of ``border="pad"``, ``cell_fraction`` and the fused
         kernel (float32 on the CPU: one such tensor at a time, plus the cache) need less."""
