@@ -235,9 +235,6 @@ def test_probe_records_once_across_refreshes():
     process: Dr.Jit keys a recording on every instance in its registry, so a scene of another
     test freed between two calls re-records too, whatever the code under test does (it failed
     once in eleven full-suite orders, with the garbage collected and paused beforehand)."""
-    import subprocess
-    import sys
-
     code = (
         "import torch, torchir\n"
         "from torchir.functions.probe import probe_pixels\n"
@@ -247,9 +244,8 @@ def test_probe_records_once_across_refreshes():
         f"    probe_pixels(scene, {{'{KEY}': torch.full((3,), 0.5)}}, [({RES}, {RES})], passes=2, seed=100 + step)\n"
         "print('recordings', _pixel_passes(scene)._one_path.n_recordings)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.split()[-2:] == ["recordings", "1"], out.stdout[-500:]
+    out = run_in_fresh_process(code)
+    assert out.split()[-2:] == ["recordings", "1"], out[-500:]
 
 
 # ------------------------------------------- Stage 1 and the sampled loss, renderer faked (issue 19)

@@ -27,6 +27,7 @@ Pixel-sampled fits (``render_pixels``) are not corrected: a pixel batch has no n
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -46,30 +47,38 @@ def chroma_sampling(path: str | Path) -> tuple[int, int]:
     down: ``(2, 2)`` for 4:2:0, ``(2, 1)`` for 4:2:2, ``(1, 1)`` for full chroma, a greyscale JPEG
     or a file that is not a JPEG. Read from the frame header (the luma component's sampling
     factors over the chroma components')."""
-    data = Path(path).read_bytes()
-    if data[:2] != b"\xff\xd8":
-        return (1, 1)
-    i = 2
-    while i + 4 <= len(data):
-        if data[i] != 0xFF:
-            return (1, 1)  # not a marker where one must be: leave the image as it is
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        length = int.from_bytes(data[i + 2:i + 4], "big")
+    for marker, segment in _header_segments(path):
         if marker in _START_OF_FRAME:
-            count = data[i + 9]
-            factors = [(data[i + 11 + 3 * k] >> 4, data[i + 11 + 3 * k] & 0x0F) for k in range(count)]
+            count = segment[9]
+            factors = [(segment[11 + 3 * k] >> 4, segment[11 + 3 * k] & 0x0F) for k in range(count)]
             if count < 3:
                 return (1, 1)
             (hy, vy), chroma = factors[0], factors[1:3]
             hc, vc = max(h for h, _ in chroma), max(v for _, v in chroma)
             return (max(hy // max(hc, 1), 1), max(vy // max(vc, 1), 1))
-        if marker == 0xDA:  # start of scan before a frame header: malformed
-            return (1, 1)
-        i += 2 + length
     return (1, 1)
+
+
+def _header_segments(path: str | Path) -> Iterator[tuple[int, bytes]]:
+    """``(marker, segment)`` for each header segment of the JPEG at ``path`` before its first
+    scan, ``segment`` from the marker's 0xFF on (its length at 2-3, its payload from 4). Nothing
+    for a file that is not a JPEG; it stops where a marker must be and is not (malformed)."""
+    data = Path(path).read_bytes()
+    if data[:2] != b"\xff\xd8":
+        return
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            return
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker == 0xDA:  # start of scan: the headers are over
+            return
+        length = int.from_bytes(data[i + 2:i + 4], "big")
+        yield marker, data[i:i + 2 + length]
+        i += 2 + length
 
 
 def subsample_chroma(image: torch.Tensor, factors: tuple[int, int] = (2, 2), srgb: bool = True) -> torch.Tensor:
@@ -164,25 +173,14 @@ def quantization_tables(path: str | Path) -> torch.Tensor | None:
     """``(3, 8, 8)``: the quantisation step of each DCT coefficient ``(u, v)`` for the Y, Cb and Cr
     components of the JPEG at ``path`` (read from its DQT and frame headers), or None for a file
     that is not a three-component JPEG."""
-    data = Path(path).read_bytes()
-    if data[:2] != b"\xff\xd8":
-        return None
     tables: dict[int, torch.Tensor] = {}
-    i = 2
-    while i + 4 <= len(data):
-        if data[i] != 0xFF:
-            return None
-        marker = data[i + 1]
-        if marker == 0xFF:
-            i += 1
-            continue
-        length = int.from_bytes(data[i + 2:i + 4], "big")
+    for marker, segment in _header_segments(path):
         if marker == 0xDB:  # define quantisation table(s): [precision << 4 | id, 64 steps in zig-zag order] ...
-            j, end = i + 4, min(i + 2 + length, len(data))
-            while j < end:
-                wide, table_id = data[j] >> 4, data[j] & 0x0F
+            j = 4
+            while j < len(segment):
+                wide, table_id = segment[j] >> 4, segment[j] & 0x0F
                 size = 2 if wide else 1
-                raw = data[j + 1:j + 1 + 64 * size]
+                raw = segment[j + 1:j + 1 + 64 * size]
                 if len(raw) < 64 * size:
                     return None
                 steps = [int.from_bytes(raw[k * size:(k + 1) * size], "big") for k in range(64)]
@@ -191,14 +189,11 @@ def quantization_tables(path: str | Path) -> torch.Tensor | None:
                 tables[table_id] = table.reshape(8, 8)
                 j += 1 + 64 * size
         elif marker in _START_OF_FRAME:
-            count = data[i + 9]
-            ids = [data[i + 12 + 3 * k] for k in range(count)]
+            count = segment[9]
+            ids = [segment[12 + 3 * k] for k in range(count)]
             if count != 3 or any(t not in tables for t in ids):
                 return None
             return torch.stack([tables[t] for t in ids])
-        elif marker == 0xDA:
-            return None
-        i += 2 + length
     return None
 
 
