@@ -15,6 +15,7 @@ normal test against the floor, a small blocker casting a shadow, and background 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import gc
 import math
 import time
@@ -169,11 +170,15 @@ B1 = {"candidates": 1, "temporal": False, "spatial": False, "burn_in": 0}
 # ------------------------------------------------------------------------------ options
 def test_defaults_and_initial_state():
     i = ReSTIRDirectIntegrator()
-    got = {k: getattr(i, k) for k in restir_di._OPTIONS}
+    names = ("candidates", "neighbors", "radius", "normal_threshold", "m_cap", "temporal", "spatial", "burn_in",
+             "grad_paths", "forward_only", "nn_backend", "target", "freeze", "multiview", "spp_chains",
+             "offset_lifetime", "light_guide")
+    got = {k: getattr(i, k) for k in names}
     assert got == {"candidates": 16, "neighbors": 8, "radius": 0.0, "normal_threshold": 0.9, "m_cap": 32.0,
                    "temporal": True, "spatial": True, "burn_in": 32, "grad_paths": "decorrelated", "forward_only": False,
-                   "nn_backend": "auto", "target": "shadowed", "freeze": True, "multiview": "auto", "spp_chains": True,
-                   "offset_lifetime": 0.0, "light_guide": 0.0}
+                   "nn_backend": "auto", "target": "shadowed", "freeze": torchir.backend.frozen_renders(),
+                   "multiview": "auto", "spp_chains": True, "offset_lifetime": 0.0, "light_guide": 0.0}
+    assert i.options == restir_di.ReSTIROptions()
     assert type(i.m_cap) is float and type(i.radius) is float and type(i.normal_threshold) is float
     assert i.states == {} and i.last == {} and i.timings == {} and i.stats == {}
     assert i.last_pass_frozen is False and i._frozen_pass is None and i._last_pass is None
@@ -204,8 +209,9 @@ def test_properties_and_their_overrides():
 
 
 def test_option_errors(monkeypatch):
-    known = sorted(restir_di._OPTIONS)
-    assert _msg(TypeError, _integrator, spp=2, candidatez=1) == f"unknown ReSTIR option(s) ['candidatez', 'spp']; known: {known}"
+    known = sorted(f.name for f in dataclasses.fields(restir_di.ReSTIROptions))
+    assert _msg(TypeError, _integrator, spp=2, candidatez=1) == (
+        f"unknown ReSTIR option(s) ['candidatez', 'spp'] (did you mean 'candidates'?); known: {known}")
     assert _msg(TypeError, _integrator, candidates=2.0) == "candidates must be an int, got float"
     assert _msg(TypeError, _integrator, candidates=True) == "candidates must be an int, got bool"
     assert _msg(TypeError, _integrator, neighbors="4") == "neighbors must be an int, got str"
@@ -1355,7 +1361,7 @@ def test_temporal_memory_is_short_while_the_geometry_moves(point):
         assert _np(i.states[0].prev.M).max() == 4.0
         i.step(point, 0, 4, 1)  # unmoved since: the memory grows again
         assert _np(i.states[0].prev.M).max() == 7.0
-        i.moving_geometry_m_cap = 0  # off: the m_cap alone
+        i.options = i.options.replace(moving_geometry_m_cap=0)  # off: the m_cap alone
         params["blocker.to_world"] = mi.Transform4f(T().translate([-0.3, 0.3, 0.6]).scale(0.15))
         params.update()
         i.step(point, 0, 5, 1)

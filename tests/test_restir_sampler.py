@@ -91,12 +91,14 @@ def test_options_reach_the_integrator(scene):
 def test_presets(scene):
     assert _PRESETS == ("restir", "persistent", "b1", "b2", "forward_only")
     kw = dict(candidates=6, neighbors=3, burn_in=9, temporal=True, spatial=True)
-    b1 = ReSTIRSampler(scene, preset="b1", **kw)
+    b1 = ReSTIRSampler(scene, preset="b1")
     assert b1.preset == "b1"
     o = _options(b1)
     assert (o["candidates"], o["temporal"], o["spatial"], o["burn_in"], o["forward_only"]) == (1, False, False, 0, False)
-    assert (o["neighbors"], o["m_cap"]) == (3, 2.0)
-    b2 = ReSTIRSampler(scene, preset="b2", **kw)
+    assert (o["neighbors"], o["m_cap"]) == (8, 2.0)
+    o = _options(ReSTIRSampler(scene, preset="b1", **kw))  # explicit arguments win over the preset's
+    assert (o["candidates"], o["temporal"], o["spatial"], o["burn_in"], o["neighbors"]) == (6, True, True, 9, 3)
+    b2 = ReSTIRSampler(scene, preset="b2", candidates=6, neighbors=3)
     o = _options(b2)
     assert (o["candidates"], o["temporal"], o["spatial"], o["burn_in"], o["forward_only"]) == (6, False, False, 0, False)
     assert (o["neighbors"], o["m_cap"]) == (3, 12.0)
@@ -107,7 +109,7 @@ def test_presets(scene):
     o = _options(re_)
     assert (o["candidates"], o["temporal"], o["spatial"], o["burn_in"], o["forward_only"]) == (6, True, True, 9, False)
     assert (o["offset_lifetime"], o["m_cap"], re_.integrator.chain_cap) == (0.0, 12.0, 384.0)
-    persistent = _options(ReSTIRSampler(scene, preset="persistent", **kw))
+    persistent = _options(ReSTIRSampler(scene, preset="persistent", **{**kw, "spatial": False}))
     assert (persistent["candidates"], persistent["temporal"], persistent["spatial"], persistent["burn_in"]) == (6, True, False, 9)
     assert (persistent["offset_lifetime"], persistent["multiview"]) == (2048.0, "per_sensor")
     assert _options(ReSTIRSampler(scene, preset="persistent", offset_lifetime=float("inf")))["offset_lifetime"] == float("inf")
@@ -121,7 +123,7 @@ def test_bad_scene_and_preset(scene):
     assert _raises(TypeError, ReSTIRSampler, scene.mi_scene).startswith("scene must be a torchir.Scene, got ")
     msg = _raises(ValueError, ReSTIRSampler, scene, preset="B1")
     assert msg == "preset must be one of ('restir', 'persistent', 'b1', 'b2', 'forward_only'), got 'B1'"
-    assert _raises(ValueError, ReSTIRSampler, scene, preset=None).endswith("got None")
+    assert ReSTIRSampler(scene, preset=None).preset == "restir"  # None: the default
 
 
 @pytest.mark.parametrize("seed", [True, False, -1, 2**32, 2**40, 3.0, "3", None])
@@ -208,8 +210,7 @@ def test_check_gradients_warns_once_about_geometry(scene, names):
         r.check_gradients(names)  # once per scene and key
     for preset, chains, chained in (("forward_only", True, False), ("b2", "auto", False), ("restir", True, True)):
         scene._warned.discard("restir-geometry")  # the warning says whether edge samples are kept across steps
-        sampler = ReSTIRSampler(scene, preset=preset)
-        sampler.integrator.edge_temporal = chains
+        sampler = ReSTIRSampler(scene, preset=preset, edge_temporal=chains)
         with pytest.warns(UserWarning) as record:
             sampler.check_gradients(names)
         assert [str(w.message) for w in record] == [geometry_message(chained=chained)]

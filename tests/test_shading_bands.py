@@ -66,8 +66,7 @@ def _b2_estimates(problem: Problem, bands: bool) -> np.ndarray:
     scene = problem.scene("b2")
     v0 = scene.get(KEY)
     d_t, d_v = problem.directions(problem.user_vertex_mask, v0.numel() // 3)
-    sampler = ReSTIRSampler(scene, preset="b2", seed=11)
-    sampler.integrator.shading_bands = bands
+    sampler = ReSTIRSampler(scene, preset="b2", seed=11, shading_bands=bands)
     out = np.zeros((1, STEPS, 2))
     for i in range(STEPS):
         t = torch.zeros(2, requires_grad=True)
@@ -114,9 +113,10 @@ def test_band_arguments_support_and_extremes(sphere):
         _shading_bands.band_backward(integrator, scene, 0, zero, mesh, 0, 0)
     with pytest.raises(ValueError, match="box filter"):
         _shading_bands.band_backward(integrator, scene, 0, zero, [], 16, 0)
-    integrator.shading_bands = "sometimes"
     with pytest.raises(ValueError, match="shading_bands"):
-        integrator.uses_shading_bands(mesh)
+        ReSTIRDirectIntegrator(shading_bands="sometimes")
+    with pytest.raises(AttributeError, match=r"ReSTIRSampler\(scene, shading_bands=True\)"):
+        integrator.shading_bands = True
     params = mi.traverse(scene)
     v0 = mi.Float(params[KEY])
     try:

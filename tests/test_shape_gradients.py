@@ -101,8 +101,7 @@ def test_shadow_edge_table_of_a_welded_box():
 
 
 def _restir_shadow_gradients(scene, key, v0, up, adjoint, n, edges):
-    sampler = ReSTIRSampler(scene, candidates=4, burn_in=2)
-    sampler.integrator.shadow_edge_sampling = edges
+    sampler = ReSTIRSampler(scene, candidates=4, burn_in=2, shadow_edge_sampling=edges)
     grads = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the stage-v2 notice
@@ -367,18 +366,16 @@ def test_auto_edge_strategy_chains_by_length_only_where_the_samples_cannot_cover
     assert integrator.edge_strategy(crown, crown_meshes, 64 * 64) == (False, True)
     assert integrator.edge_strategy(box, box_meshes, 1) == (True, False)  # 2 x 18 welded-box edges for one sample
     assert integrator.edge_strategy(box, box_meshes, 16 * 16) == (False, True)
-    integrator.edge_temporal, integrator.edge_guiding = True, False
+    integrator = ReSTIRDirectIntegrator(edge_temporal=True, edge_guiding=False)
     assert integrator.edge_strategy(crown, crown_meshes, 64 * 64) == (True, False)
-    integrator.edge_temporal, integrator.edge_guiding = False, True
+    integrator = ReSTIRDirectIntegrator(edge_temporal=False, edge_guiding=True)
     assert integrator.edge_strategy(crown, crown_meshes, 1024) == (False, True)
     for off in ("temporal", "forward_only"):
         other = ReSTIRDirectIntegrator(**{off: off == "forward_only"})
         assert other.edge_strategy(crown, crown_meshes, 1024) == (False, False)  # by length, no chains
     for name, bad in (("edge_temporal", "yes"), ("edge_guiding", 1), ("edge_temporal", None)):
-        other = ReSTIRDirectIntegrator()
-        setattr(other, name, bad)
         with pytest.raises(ValueError, match=name):
-            other.edge_strategy(crown, crown_meshes, 1024)
+            ReSTIRDirectIntegrator(**{name: bad})
 
 
 def test_temporal_edge_chains_with_no_adjoint_stay_empty_and_exactly_zero():

@@ -159,8 +159,7 @@ def test_silhouette_sampling_through_the_restir_integrator(pig_problem):
     _, adjoint = _adjoint(RES, 1.0)
 
     def run(sampling: bool) -> np.ndarray:
-        integrator = ReSTIRDirectIntegrator(candidates=4, temporal=False, spatial=False)
-        integrator.silhouette_sampling = sampling
+        integrator = ReSTIRDirectIntegrator(candidates=4, temporal=False, spatial=False, silhouette_sampling=sampling)
 
         def step(i):
             _, cache = integrator.step(scene, 0, 600 + i, 4)

@@ -7,8 +7,8 @@ before any kernel runs and a :class:`LLVMError` says how to fix it.
 
 Example:
     >>> import torchir
-    >>> torchir.backend.set_variant("auto")
-    'llvm_ad_rgb'
+    >>> torchir.backend.set_variant("auto")  # cuda_ad_rgb where CUDA is there
+    '..._ad_rgb'
 """
 from __future__ import annotations
 
@@ -159,8 +159,8 @@ class count_kernels:
     Example:
         >>> with torchir.backend.count_kernels() as stats:
         ...     img = render(scene, params, spp=4, seed=1)
-        >>> stats.compiled
-        0
+        >>> stats.launched > 0   # and stats.compiled == 0 once the kernels are cached
+        True
     """
 
     def __enter__(self) -> KernelStats:

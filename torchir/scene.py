@@ -463,8 +463,9 @@ class Scene:
             that gives some of them takes the load-time value for the others.
 
         Example:
-            >>> scene.derive("light.position", lambda h: torch.cat([torch.zeros(1), h, torch.zeros(1)]),
-            ...              {"light.height": [2.0]})
+            >>> ball = Scene.builtin("glossy_ball", resolution=16)   # a point light at "light.position"
+            >>> ball.derive("light.position", lambda h: torch.cat([torch.zeros(1), h, torch.ones(1)]),
+            ...             {"light.height": [2.0]})
             ['light.height']
         """
         self._require_name(target)

@@ -144,7 +144,7 @@ class WeldedFaces:
     structure is updated both ways). With nothing to weld it does nothing.
 
     Example:
-        >>> with WeldedFaces(mi.traverse(scene), moving_meshes):
+        >>> with WeldedFaces(mi.traverse(scene), moving_meshes):  # doctest: +SKIP
         ...     boundary_integrator.render_backward(scene, params, grad_in, sensor)
     """
 

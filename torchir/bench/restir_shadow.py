@@ -121,17 +121,16 @@ def sampler_for(method: str, scene: torchir.Scene, burn_in: int, edge_candidates
         return None
     preset = {"ReSTIR": "restir", "ReSTIR, edge chains": "restir", "ReSTIR, no edge chains": "restir", "forward-only": "forward_only", "B.2": "b2", "B.2, guided edges": "b2",
               "ReSTIR, projective edges": "restir"}[method]
-    sampler = ReSTIRSampler(scene, preset=preset, burn_in=burn_in)
+    edges: dict = {"edge_candidates": edge_candidates}
     if method == "ReSTIR, projective edges":
-        sampler.integrator.shadow_edge_sampling = False
+        edges["shadow_edge_sampling"] = False
     if method in ("ReSTIR, edge chains", "ReSTIR, no edge chains"):
-        sampler.integrator.edge_temporal = method == "ReSTIR, edge chains"
+        edges["edge_temporal"] = method == "ReSTIR, edge chains"
     if method == "B.2, guided edges":
-        sampler.integrator.edge_guiding = True
+        edges["edge_guiding"] = True
     if method in ("forward-only", "B.2"):  # the paper's: edge guiding is a by-product of its edge reservoirs (Eq. 27)
-        sampler.integrator.edge_guiding = False
-    sampler.integrator.edge_candidates = edge_candidates
-    return sampler
+        edges["edge_guiding"] = False
+    return ReSTIRSampler(scene, preset=preset, burn_in=burn_in, **edges)
 
 
 def optimizer_for(theta: torch.Tensor, a: argparse.Namespace) -> torch.optim.Optimizer:

@@ -129,6 +129,7 @@ RGB variants only; no media, no environment emitters, a box pixel filter.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import time
 import warnings
@@ -149,28 +150,10 @@ from ._light import (FORWARD_FLAGS, LightSample, Reservoirs, eval_target, fresh_
                      sample_candidate)
 from ._mesh_edges import edges_of, mitsuba_silhouettes_wrong
 from ._scene_watch import EmitterWatch, GeometryWatch, as_tuples
+from .restir_options import ReSTIROptions
 
-__all__ = ["ReSTIRDirectIntegrator", "check_scene", "StepCache"]
+__all__ = ["ReSTIRDirectIntegrator", "ReSTIROptions", "check_scene", "StepCache"]
 
-_OPTIONS = {
-    "candidates": 16,
-    "neighbors": 8,
-    "radius": 0.0,
-    "normal_threshold": 0.9,
-    "m_cap": 0,
-    "temporal": True,
-    "spatial": True,
-    "burn_in": 32,
-    "grad_paths": "decorrelated",
-    "forward_only": False,
-    "nn_backend": "auto",
-    "target": "shadowed",
-    "freeze": True,
-    "multiview": "auto",
-    "spp_chains": True,
-    "offset_lifetime": 0.0,
-    "light_guide": 0.0,
-}
 MULTIVIEW = ("auto", "per_sensor", "carry_over")
 STORE = -1  # the state key of the one reservoir store of multiview="carry_over"
 LOADED = ("loaded",)  # SensorState.geometry of reservoirs loaded from a state dict
@@ -265,67 +248,27 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     zero_remainder = True  # step() takes zero_remainder= (torchir's render sets it per step)
     young_lane_burn_in = True  # a redrawn lane continues its first RIS over burn_in x candidates (see _pass; False: as before, for measurements)
     same_point_visibility = True  # a lane's own chain reuses its sample's visibility (see _combine; False: traced, for tests)
-    shadow_edge_sampling = True  # shadow edges sampled on the moving meshes (see _boundary_backward; False: direct_projective's)
-    edge_guiding: bool | str = "auto"  # (edge, light) pairs drawn by what earlier steps found (_shadow_edges; False: by length; auto: see edge_strategy)
-    edge_light_candidates = 1  # light points per shadow-edge sample, one kept by RIS (R21; see _shadow_edges)
-    edge_candidates = 1  # whole shadow-edge samples per sample kept, one kept by RIS (see _shadow_edges)
-    edge_temporal: bool | str = "auto"  # shadow-edge samples reused across steps (chains; with temporal reuse, not forward_only; auto: see edge_strategy)
-    edge_chain_cap = 32.0  # a shadow-edge chain's confidence cap, in candidates
-    silhouette_sampling: bool | str = "auto"  # primary silhouettes sampled on the moving meshes' edges (_silhouettes; False: direct_projective's; auto: see uses_silhouette_sampling)
-    silhouette_candidates = 16  # RIS light candidates on either side of a silhouette sample (bench restir_silhouette)
-    shading_bands: bool | str = "auto"  # the shading-horizon curves of smooth meshes (_shading_bands; auto: see uses_shading_bands)
-    moving_geometry_m_cap = 4  # the M cap of temporal reuse after the geometry moved (see sample_paths; 0: m_cap)
 
-    def __init__(self, props: mi.Properties | None = None, **options: Any) -> None:
+    def __init__(self, props: mi.Properties | None = None, options: ReSTIROptions | None = None, **changes: Any) -> None:
+        """``options`` (default ``ReSTIROptions()``), with ``changes`` applied; a Mitsuba
+        ``props`` (``mi.load_dict({"type": "restir_di", "candidates": 4})``) sets options too."""
         props = mi.Properties() if props is None else props
         super().__init__(props)
         if "max_depth" in props and props["max_depth"] != 2:
             raise ValueError("ReSTIR direct illumination renders direct light only: max_depth must be 2")
-        unknown = set(options) - set(_OPTIONS)
-        if unknown:
-            raise TypeError(f"unknown ReSTIR option(s) {sorted(unknown)}; known: {sorted(_OPTIONS)}")
-        cfg = {k: (props[k] if k in props else v) for k, v in _OPTIONS.items()}
-        cfg.update(options)
-        self.candidates = _check_int("candidates", cfg["candidates"], 1)
-        self.neighbors = _check_int("neighbors", cfg["neighbors"], 1)
-        self.radius = float(cfg["radius"])
-        if not np.isfinite(self.radius) or self.radius < 0:
-            raise ValueError(f"radius must be >= 0 (0 = automatic), got {self.radius}")
-        self.normal_threshold = float(cfg["normal_threshold"])
-        m_cap = _check_int("m_cap", cfg["m_cap"], 0)
-        self.m_cap = float(m_cap if m_cap > 0 else 2 * self.candidates)
-        self.chain_cap = float(m_cap if m_cap > 0 else CHAIN_CAP * self.candidates)
-        self.temporal, self.spatial = bool(cfg["temporal"]), bool(cfg["spatial"])
-        self.burn_in = _check_int("burn_in", cfg["burn_in"], 0)
-        if cfg["grad_paths"] not in ("shared", "decorrelated"):
-            raise ValueError(f"grad_paths must be 'shared' or 'decorrelated', got {cfg['grad_paths']!r}")
-        self.grad_paths = cfg["grad_paths"]
-        self.forward_only = bool(cfg["forward_only"])
-        if cfg["nn_backend"] not in ("auto", *_knn.NeighbourSearch.BACKENDS):
-            raise ValueError(f"nn_backend must be 'auto', 'kdtree', 'grid' or 'screen', got {cfg['nn_backend']!r}")
-        if cfg["nn_backend"] == "kdtree" and not _knn.have_scipy():
+        if options is not None and not isinstance(options, ReSTIROptions):
+            raise TypeError(f"options must be a ReSTIROptions, got {type(options).__name__}")
+        from_props = {f.name: props[f.name] for f in dataclasses.fields(ReSTIROptions) if f.name in props}
+        options = (options or ReSTIROptions()).replace(**{**from_props, **changes})
+        if options.nn_backend == "kdtree" and not _knn.have_scipy():
             raise ValueError("nn_backend='kdtree' needs scipy (pip install scipy); use 'grid' or 'auto'")
-        self.nn_backend = cfg["nn_backend"]
-        if cfg["target"] not in ("shadowed", "unshadowed"):
-            raise ValueError(f"target must be 'shadowed' or 'unshadowed', got {cfg['target']!r}")
-        self.target = cfg["target"]
-        if cfg["multiview"] not in MULTIVIEW:
-            raise ValueError(f"multiview must be 'auto', 'per_sensor' or 'carry_over', got {cfg['multiview']!r}")
-        self.multiview = cfg["multiview"]
-        self.spp_chains = bool(cfg["spp_chains"])
-        self.offset_lifetime = float(0.0 if cfg["offset_lifetime"] is None else cfg["offset_lifetime"])
-        if not (self.offset_lifetime == 0.0 or self.offset_lifetime >= 1.0):  # NaN fails both
-            raise ValueError(f"offset_lifetime must be None or 0 (a fresh camera offset every step) or >= 1 "
-                             f"steps (inf: kept until the sensor moves), got {cfg['offset_lifetime']!r}")
-        self.light_guide = float(cfg["light_guide"])
-        if not 0.0 <= self.light_guide < 1.0:  # NaN fails too
-            raise ValueError(f"light_guide must be a share of candidates in [0, 1) (0: off), got {cfg['light_guide']!r}")
-        if self.light_guide > 0 and not self.lane_chains:  # a guide is learned at a kept shading point
-            raise ValueError("light_guide needs lane chains: kept camera offsets and temporal reuse alone "
-                             "(ReSTIRSampler(scene, preset='persistent', light_guide=...))")
+        self.options = options
+        self._reuse_suspended = False  # the gradient pass of forward_only: plain RIS
+        self.m_cap = float(options.m_cap if options.m_cap > 0 else 2 * options.candidates)
+        self.chain_cap = float(options.m_cap if options.m_cap > 0 else CHAIN_CAP * options.candidates)
         self._neighbour_search = _knn.NeighbourSearch(self.nn_backend)
         self._emitter_watch = EmitterWatch()
-        self.freeze = bool(cfg["freeze"])
+        self.freeze = backend.frozen_renders() if options.freeze is None else options.freeze  # off after a failed replay
         self._frozen_pass = None
         self._boundary_integrators: dict[tuple[bool, bool], mi.Integrator] = {}  # direct_projective, by (secondary, primary)
         self._band_warned = False  # warned once that the shading-horizon term cannot run (see _band_objective)
@@ -353,6 +296,14 @@ class ReSTIRDirectIntegrator(RBIntegrator):
     def carries_over(self, scene: mi.Scene) -> bool:
         """One store for all views (Alg. 8): ``carry_over``, or ``auto`` with several sensors."""
         return self.multiview == "carry_over" or (self.multiview == "auto" and len(scene.sensors()) > 1)
+
+    @property
+    def temporal(self) -> bool:
+        return self.options.temporal and not self._reuse_suspended
+
+    @property
+    def spatial(self) -> bool:
+        return self.options.spatial and not self._reuse_suspended
 
     @property
     def shadowed(self) -> bool:
@@ -872,13 +823,12 @@ class ReSTIRDirectIntegrator(RBIntegrator):
         key = STORE if self.carries_over(scene) else cache.sensor
         lanes, ray_weight, spp, zero = cache.lanes, cache.ray_weight, cache.spp, cache.zero
         if self.forward_only:  # plain RIS with seed_grad
-            saved = (self.temporal, self.spatial)
-            self.temporal = self.spatial = False
+            self._reuse_suspended = True
             try:
                 (ray_weight, _), lanes, stats = self.sample_paths(
                     scene, cache.sensor, seed_grad, spp_grad, None, self.state(scene, key), None, zero is not None)
             finally:
-                self.temporal, self.spatial = saved
+                self._reuse_suspended = False
             spp, zero = spp_grad, stats.zero
         elif self.grad_paths == "decorrelated":
             # the gradient's own chain: reservoirs, kept offsets and guides reused from earlier
@@ -1151,12 +1101,28 @@ def _chain(states: dict[int, SensorState], scene: mi.Scene, sensor: int) -> Sens
     return st
 
 
-def _check_int(name: str, value: Any, lo: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an int, got {type(value).__name__}")
-    if value < lo:
-        raise ValueError(f"{name} must be >= {lo}, got {value}")
-    return int(value)
+class _OptionAttribute:
+    """``integrator.<name>`` reads ``integrator.options.<name>``; setting it is refused (one channel:
+    the options)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.__doc__ = f"``options.{name}`` (read-only)"
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        return self if obj is None else getattr(obj.options, self.name)
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        raise AttributeError(f"ReSTIR options are set when the sampler is made, not on its integrator: "
+                             f"ReSTIRSampler(scene, {self.name}={value!r}) or ReSTIROptions({self.name}={value!r})")
+
+
+for _name in ("candidates", "neighbors", "radius", "normal_threshold", "burn_in", "grad_paths", "forward_only",
+              "nn_backend", "target", "multiview", "spp_chains", "offset_lifetime", "light_guide",
+              "shadow_edge_sampling", "edge_guiding", "edge_temporal", "edge_light_candidates", "edge_candidates",
+              "edge_chain_cap", "silhouette_sampling", "silhouette_candidates", "shading_bands", "moving_geometry_m_cap"):
+    setattr(ReSTIRDirectIntegrator, _name, _OptionAttribute(_name))
+del _name
 
 
 def _sensor(scene: mi.Scene, sensor) -> tuple[int, mi.Sensor]:

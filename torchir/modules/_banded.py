@@ -12,6 +12,7 @@ which gives the same values to float32 rounding. The same library holds the LOI 
 per-bin kernel (``loi_sigma``, ``point_cdf``; called from :mod:`._loi_native`).
 
 Example:
+    >>> from torchir.modules._blur import gaussian_matrix
     >>> m = gaussian_matrix(64, 2.0)
     >>> sandwich(m, torch.rand(3, 64, 64), m).shape
     torch.Size([3, 64, 64])

@@ -664,8 +664,11 @@ class LOILoss(nn.Module):
 
     Example:
         >>> loss_fn = LOILoss.preset("pathtracing", transform="reinhard")
+        >>> rendered, target = torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 32)
         >>> loss = loss_fn(rendered, target)          # (B, C, H, W) each -> scalar
-        >>> loss_fn.terms(rendered, target)           # {(sigma, alpha): value}
+        >>> terms = loss_fn.terms(rendered, target)   # {(sigma, alpha): value}
+        >>> sorted(terms)[0], loss.shape
+        ((1.0, 1.0), torch.Size([]))
     """
 
     pixelwise = False  # local histograms couple pixels: not usable with pixel sampling

@@ -4,7 +4,7 @@
 to sampler classes; each is built as ``SAMPLERS[type](scene, **options)``.
 """
 from .pixel import AdaptivePixelSampler, LossPixelSampler, PixelBatch, PixelSampler, SampledLoss, UniformPixelSampler, sampled_loss
-from .restir import ReSTIRSampler
+from .restir import ReSTIROptions, ReSTIRSampler
 
 SAMPLERS: dict[str, type] = {  # name -> sampler class, constructed as cls(scene, **options)
     "uniform": UniformPixelSampler,
@@ -13,4 +13,4 @@ SAMPLERS: dict[str, type] = {  # name -> sampler class, constructed as cls(scene
     "restir": ReSTIRSampler,
 }
 
-__all__ = ["SAMPLERS", "PixelBatch", "SampledLoss", "sampled_loss", "PixelSampler", "UniformPixelSampler", "LossPixelSampler", "AdaptivePixelSampler", "ReSTIRSampler"]
+__all__ = ["SAMPLERS", "PixelBatch", "SampledLoss", "sampled_loss", "PixelSampler", "UniformPixelSampler", "LossPixelSampler", "AdaptivePixelSampler", "ReSTIRSampler", "ReSTIROptions"]

@@ -28,12 +28,12 @@ from __future__ import annotations
 import copy
 from typing import Any
 
+from ..integrators.restir_options import PERSISTENT_LIFETIME, PRESETS, ReSTIROptions
 from ..scene import Scene, is_geometry_key
 
-__all__ = ["ReSTIRSampler"]
+__all__ = ["ReSTIRSampler", "ReSTIROptions", "PERSISTENT_LIFETIME"]
 
-_PRESETS = ("restir", "persistent", "b1", "b2", "forward_only")
-PERSISTENT_LIFETIME = 2048.0  # preset "persistent": mean steps a lane keeps its camera offset (512: 21 % more gradient error, scripts/sweep_restir.py)
+_PRESETS = tuple(PRESETS)
 
 
 class ReSTIRSampler:
@@ -42,64 +42,13 @@ class ReSTIRSampler:
     Args:
         scene: a :class:`torchir.Scene` with direct illumination only (point, spot and area
             emitters, no media, box filter).
-        candidates: M, light candidates per camera sample (streaming RIS).
-        neighbors: k, reservoirs of the previous step combined per camera sample (8 and 16
-            candidates: the lowest error x time of k in 2-16, M in 8-16 at 128², docs/restir-measurements.md).
-        radius: neighbour search radius in world units (``None``: 2 pixel footprints).
-        m_cap: cap on M (``None``: 2 * candidates for searched neighbours, 64 * candidates
-            for a lane's own chain; spec D2's 20 * candidates measured worse with searched
-            neighbours: a moved shading point can hide a long memory's sample, see
-            ``integrators/restir_di.py`` and ``scripts/sweep_restir.py``).
-        temporal, spatial: reuse switches (both: the paper's spatiotemporal reuse of the
-            previous step; neither: plain RIS).
-        burn_in: forward-only reuse passes before a sensor's first step (kept offsets without
-            spatial reuse, e.g. ``preset="persistent"``: one pass over ``burn_in x candidates``).
-        grad_paths: ``"decorrelated"`` (the default: a second resampling pass with
-            ``seed_grad``/``spp_grad``, with temporal reuse a step of the gradient's own chain,
-            which never reuses what the image reused) or ``"shared"``
-            (the paper: the gradient re-evaluates the image's paths, so ``render``'s
-            ``seed_grad``/``spp_grad`` are unused and the second pass is saved). Shared paths
-            are unbiased only for a loss linear in the image: for L2,
-            ``E[2 (I - T) dI] = 2 (E[I] - T) E[dI] + 2 Cov(I, dI)``, and the covariance term
-            pulls the fit off the truth in proportion to the image's variance, which is largest
-            where light sampling is hard (docs/restir.md, "Gradient paths"). Decorrelated paths remove
-            that term for every preset (``tests/test_restir_grad_paths.py``); with reuse the
-            gradient's chain burns in too, once, at the first backward.
-        nn_backend: ``"auto"`` (timed) | ``"kdtree"`` (scipy) | ``"grid"`` (Dr.Jit) | ``"screen"``
-            (the previous step's samples in the surrounding pixels; a sensor that has not moved).
+        options: a :class:`ReSTIROptions` (every setting, validated); default: the ``preset``'s.
+        preset: the short name of a named configuration (table above; the YAML ``preset:``
+            key): ``"restir"`` (the default), ``"persistent"``, ``"b2"``, ``"b1"`` or
+            ``"forward_only"``. Options given beside it win over what it sets.
         seed: mixed into every render seed (0: the render seed is used as is).
-        normal_threshold: neighbours with ``n . n' <`` this are dropped.
-        preset: ``"restir"`` | ``"persistent"`` | ``"b1"`` | ``"b2"`` | ``"forward_only"`` (table
-            above).
-        target: ``"shadowed"`` (p̂ includes visibility: a shadow ray per candidate and per
-            neighbour; the paper) or ``"unshadowed"`` (Bitterli's unbiased variant: one shadow
-            ray for the chosen sample, W = 0 when it is occluded; the support test keeps its rays).
-            With either, a black texel or a switched-off light (f = 0, so p̂ = 0) still gets its
-            unbiased gradient, from the fresh candidates (``integrators/restir_di.py``).
-        freeze: replay the traced resampling pass (``dr.freeze``) where it can (no reuse, or
-            screen-space neighbours of a sensor that has not moved): far less Python per step.
-            ``None``: as torchir's other renders (:func:`torchir.backend.frozen_renders`, on
-            unless ``TORCHIR_FREEZE=0``).
-        multiview: ``"per_sensor"`` (one reservoir chain per sensor), ``"carry_over"`` (the
-            paper's Alg. 8: one store for all views; a view reuses every view's reservoirs near
-            its shading points, and a render replaces only the reservoirs its sensor sees;
-            :attr:`steps` then counts the store's steps under key -1) or ``"auto"``
-            (``carry_over`` for scenes with several sensors: 1.9-2.2x lower error x time than
-            per-sensor chains in ``torchir bench restir_views``).
-        spp_chains: at ``spp > 1``, sample ``s`` of a pixel reuses only samples ``s`` of the
-            pixels around it (``spp`` interleaved chains: a pixel's samples stay independent, and
-            the screen search scans ``spp`` times fewer samples). Measured at 128², 4 spp
-            against one search over every sample: gradient error 0.028 vs 0.038 (``oxalis_lite``)
-            and 0.029 vs 0.031 (``ajar_painting``) at 0.66x and 0.59x the step time.
-        offset_lifetime: steps a camera sample keeps its position in the pixel, on average
-            (``None`` or 0: a new one every step; ``float("inf")``: until the sensor or the
-            geometry changes). Each step's positions stay uniform, so every step is unbiased;
-            but the points a step samples persist, so texels narrower than the pixel spacing
-            may get no gradient for that long. With temporal reuse alone, a kept sample
-            resamples with its own previous reservoir, at the same shading point.
-        light_guide: with kept offsets and temporal reuse alone (``preset="persistent"``), the
-            share of each lane's light candidates drawn from what it learned of where its light
-            comes from (0: off); unbiased (RIS weighs by the mixture's density).
+        **changes: any :class:`ReSTIROptions` field (``candidates=8``, ``light_guide=0.5``, ...),
+            applied to ``options`` or to the preset.
 
     Example:
         >>> scene = torchir.Scene.builtin("oxalis_lite", resolution=32)
@@ -109,69 +58,36 @@ class ReSTIRSampler:
         True
     """
 
-    def __init__(
-        self,
-        scene: Scene,
-        candidates: int = 16,
-        neighbors: int = 8,
-        radius: float | None = None,
-        m_cap: int | None = None,
-        temporal: bool = True,
-        spatial: bool = True,
-        burn_in: int = 32,
-        grad_paths: str = "decorrelated",
-        nn_backend: str = "auto",
-        seed: int = 0,
-        normal_threshold: float = 0.9,
-        preset: str = "restir",
-        target: str = "shadowed",
-        freeze: bool | None = None,
-        multiview: str = "auto",
-        spp_chains: bool = True,
-        offset_lifetime: float | None = None,
-        light_guide: float = 0.0,
-    ) -> None:
+    def __init__(self, scene: Scene, options: ReSTIROptions | None = None, *, preset: str | None = None,
+                 seed: int = 0, **changes: Any) -> None:
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a torchir.Scene, got {type(scene).__name__}")
-        if preset not in _PRESETS:
-            raise ValueError(f"preset must be one of {_PRESETS}, got {preset!r}")
         if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**32:
             raise ValueError(f"seed must be an int in [0, 2^32), got {seed!r}")
-        forward_only = preset == "forward_only"
-        if preset == "b1":
-            candidates, temporal, spatial, burn_in = 1, False, False, 0
-        elif preset == "persistent":  # each sensor its own chains: a carried-over store has no lanes to keep
-            spatial, multiview = False, "per_sensor" if multiview == "auto" else multiview
-            offset_lifetime = PERSISTENT_LIFETIME if offset_lifetime is None else offset_lifetime
-        elif preset == "b2":
-            temporal, spatial, burn_in = False, False, 0
+        given = options is not None
+        if options is None:
+            options = ReSTIROptions.preset("restir" if preset is None else preset, **changes)
+        elif not isinstance(options, ReSTIROptions):
+            raise TypeError(f"options must be a ReSTIROptions, got {type(options).__name__} "
+                            f"(other settings are keyword arguments: ReSTIRSampler(scene, candidates=8))")
+        elif preset is not None:
+            raise TypeError("give options= or preset=, not both (ReSTIROptions.preset(name, ...) builds the options of a preset)")
+        else:
+            options = options.replace(**changes)
         from .. import backend
         from ..integrators.restir_di import ReSTIRDirectIntegrator, check_scene
 
         backend.variant()
         check_scene(scene.mi_scene)
         self.scene = scene
-        self.preset = preset
+        self.preset = preset if preset is not None else (None if given else "restir")  # None: options given
         self.seed = seed
-        self.integrator = ReSTIRDirectIntegrator(
-            candidates=candidates,
-            neighbors=neighbors,
-            radius=0.0 if radius is None else float(radius),
-            m_cap=0 if m_cap is None else m_cap,
-            temporal=temporal,
-            spatial=spatial,
-            burn_in=burn_in,
-            grad_paths=grad_paths,
-            forward_only=forward_only,
-            nn_backend=nn_backend,
-            normal_threshold=normal_threshold,
-            target=target,
-            freeze=backend.frozen_renders() if freeze is None else bool(freeze),
-            multiview=multiview,
-            spp_chains=spp_chains,
-            offset_lifetime=offset_lifetime,
-            light_guide=light_guide,
-        )
+        self.integrator = ReSTIRDirectIntegrator(options=options)
+
+    @property
+    def options(self) -> ReSTIROptions:
+        """The sampler's settings (immutable: build a new sampler to change them)."""
+        return self.integrator.options
 
     # ------------------------------------------------------------------ used by render()
     def render_seed(self, seed: int) -> int:
