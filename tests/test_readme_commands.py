@@ -132,13 +132,13 @@ def test_the_command_parser_reads_indented_and_shell_fenced_blocks(tmp_path, mon
     (tmp_path / "README.md").write_text("Run torchir fit --help here.\n\n    torchir fit --help   # a comment\n")
     (tmp_path / "docs" / "a.md").write_text(
         "```bash\n$ torchir bench all --quick\n```\n\n```python\nfor x in y:\n    python3 -m not_a_command\n```\n"
-        "\n```console\npython3 scripts/bench_loi.py --quick\n```\n"
+        "\n```console\ntorchir bench loi --quick\n```\n"
     )
     monkeypatch.setitem(globals(), "ROOT", tmp_path)
     assert doc_commands() == [
         ("README.md", "torchir fit --help"),
         ("docs/a.md", "torchir bench all --quick"),
-        ("docs/a.md", "python3 scripts/bench_loi.py --quick"),
+        ("docs/a.md", "torchir bench loi --quick"),
     ]
 
 

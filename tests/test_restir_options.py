@@ -9,7 +9,7 @@ import torchir  # noqa: I001  (before torch)
 import pytest
 
 from torchir.integrators.restir_options import PERSISTENT_LIFETIME, PRESETS, ReSTIROptions
-from torchir.samplers import SAMPLERS, ReSTIRSampler
+from torchir.samplers import PIXEL_SAMPLERS, RENDER_SAMPLERS, SAMPLERS, PixelSampler, RenderSampler, ReSTIRSampler
 
 
 @pytest.fixture(scope="module")
@@ -104,3 +104,12 @@ def test_options_have_one_channel(scene):
     with pytest.raises(AttributeError, match=r"ReSTIROptions\(candidates=4\)"):
         r.integrator.candidates = 4
     assert r.integrator.edge_guiding == "auto" and r.integrator.candidates == 16
+
+
+def test_pixel_and_render_samplers_are_apart(scene):
+    """Two kinds under one YAML namespace: pixel samplers choose pixels, render samplers render
+    (the public RenderSampler protocol that render(..., sampler=) takes)."""
+    assert SAMPLERS == {**PIXEL_SAMPLERS, **RENDER_SAMPLERS} and not PIXEL_SAMPLERS.keys() & RENDER_SAMPLERS.keys()
+    assert all(issubclass(cls, PixelSampler) for cls in PIXEL_SAMPLERS.values())
+    assert all(isinstance(cls(scene), RenderSampler) for cls in RENDER_SAMPLERS.values())
+    assert not isinstance(PIXEL_SAMPLERS["uniform"](scene), RenderSampler)

@@ -35,8 +35,8 @@ Parts (all by default, ``--parts`` selects):
   parameter error; then gradient variances at the late parameters with a fresh and a stale pmf.
 
 Usage:
-    python scripts/bench_adaptive.py            # 128x128, 5 seeds (~40 min on 2 cores)
-    python scripts/bench_adaptive.py --quick    # 64x64, 3 seeds (a few minutes)
+    torchir bench adaptive            # 128x128, 5 seeds (~40 min on 2 cores)
+    torchir bench adaptive --quick    # 64x64, 3 seeds (a few minutes)
 
 Writes ``<out>/results.json`` and PNG plots.
 """

@@ -20,8 +20,8 @@ Two parts, one command:
    the same size.
 
 Usage:
-    python scripts/bench_denoiser.py --quick   # 64^2, 4 spp, 1 seed, 60 steps, 2048-spp target; timing 64^2/256^2
-    python scripts/bench_denoiser.py           # 4 and 16 spp, 3 seeds, 200 steps; timing to 512^2
+    torchir bench denoiser --quick   # 64^2, 4 spp, 1 seed, 60 steps, 2048-spp target; timing 64^2/256^2
+    torchir bench denoiser           # 4 and 16 spp, 3 seeds, 200 steps; timing to 512^2
 
 Writes ``<out>/results.json``, ``<out>/texel_error.png`` and ``<out>/timing.png``.
 """

@@ -31,8 +31,8 @@ B1 applies Reinhard ``x/(1+x)`` to both images for every method except ``l2``; B
 paper's section 4.1 scales x 0.5 (64 px instead of 128 px images).
 
 Usage:
-    python scripts/bench_loi.py            # full: B1 150 steps, B2 200, B3 n=4,16 x 10 seeds 300 steps
-    python scripts/bench_loi.py --quick    # a few minutes: fewer steps, B3 n=4 x 5 seeds
+    torchir bench loi            # full: B1 150 steps, B2 200, B3 n=4,16 x 10 seeds 300 steps
+    torchir bench loi --quick    # a few minutes: fewer steps, B3 n=4 x 5 seeds
 
 Writes ``<out>/results.json`` (summary + one record per run), ``<out>/runs.jsonl`` and
 ``<out>/loi_bench.png``.

@@ -21,7 +21,7 @@ the share of wall time spent executing kernels (the rest is Python tracing, torc
 idle time). The ratio torchir/native is the median of the per-repetition ratios (goal: <= 1).
 
 Usage:
-    torchir bench overhead [--quick]             # or: python scripts/bench_overhead.py
+    torchir bench overhead [--quick]
     (default: Cornell box 128x128, 4 spp, 5 x 20 steps; --quick: 64x64, 3 x 10 steps)
 
 Writes ``<out>/results.json``, ``<out>/summary.md`` and ``<out>/seconds_per_step.png``.

@@ -9,7 +9,7 @@ and reservoir burn-in included) the goals are: memory grows by less than 5 % and
 compiled or missed in the cache again.
 
 Usage:
-    torchir bench soak [--quick]        # or: python scripts/bench_soak.py
+    torchir bench soak [--quick]
     (default: 1000 steps per technique; --quick: 150 steps)
 
 Writes ``<out>/results.json``, ``<out>/soak.png`` (memory and cache misses against steps) and

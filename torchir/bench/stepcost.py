@@ -15,7 +15,7 @@ Stage-1 refresh), the mean over all steps (Stage 1 amortised over ``refresh_ever
 both as ratios to the full-image step of the same repetition (median over repetitions).
 
 Usage:
-    torchir bench stepcost [--quick]     # or: python scripts/bench_stepcost.py
+    torchir bench stepcost [--quick]     # or: torchir bench stepcost
     (default: 256^2 and 512^2, 30 steps, 3 repetitions; --quick: 64^2, 12 steps, 1 repetition)
 
 Writes ``<out>/results.json``, ``<out>/summary.md`` and ``<out>/step_cost.png``.

@@ -44,7 +44,7 @@ _SMALL_BETA = 1.0 / 128  # below: many bins, gradient only within 3 beta of each
 _OUT_OF_RANGE_FRACTION = 0.01  # warn when more pixels than this lie beyond k_hi + 3 beta
 # The default (exact=False): terms with alpha >= 1 / FAST_CELL_FRACTION px are evaluated on
 # cells of floor(FAST_CELL_FRACTION * alpha) px, their input averaged over the same cells first.
-# Measured on glossy_highlight at 256² (scripts/bench_loi.py --only cost, largest over 3
+# Measured on glossy_highlight at 256² (torchir bench loi --only cost, largest over 3
 # renders): loss within 0.037 %, image gradient within 0.66 % of exact; 0.25 gives 1.5 %.
 FAST_CELL_FRACTION = 0.15
 # A cell term's input is averaged over cells of at most POOL_FRACTION * alpha px before its blur.
@@ -628,7 +628,7 @@ def loi_loss(
             pixel (0 = every pixel, the exact loss; ``None`` = 0.15, or 0 with ``exact``), and
             ``D`` is averaged over cells of at most ``0.15 alpha`` px before the blur. The
             blurred field is smooth at scale ``alpha``, so only cells that straddle one of its
-            zero crossings differ; ``scripts/bench_loi.py`` measures speed and loss/gradient error.
+            zero crossings differ; ``torchir bench loi`` measures speed and loss/gradient error.
         exact: evaluate every term on every pixel (the paper's loss). The default evaluates
             large-``alpha`` terms on cells (``cell_fraction=0.15``: at ``alphas=(1, 5, 15, 45)``
             the last two on 2 and 6 px cells), measured within 0.037 % of the exact loss and
