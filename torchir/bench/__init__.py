@@ -2,8 +2,8 @@
 
 Each suite is a module of this package with ``main(argv)`` that takes ``--quick`` and
 ``--out DIR``, prints its tables (Markdown) and writes ``results.json`` and PNG plots into
-``DIR`` (optionally ``summary.md``); ``scripts/bench_<suite>.py`` are thin wrappers around the
-same modules. The suite's output is kept in ``DIR/log.txt``. :func:`run_suites` runs suites one after another, each in a fresh process (Dr.Jit's
+``DIR`` (optionally ``summary.md``); :mod:`torchir.bench._common` holds what they share (medians,
+Markdown tables, timing). The suite's output is kept in ``DIR/log.txt``. :func:`run_suites` runs suites one after another, each in a fresh process (Dr.Jit's
 kernel cache and memory do not leak from one into the next), then writes the report
 (:mod:`torchir.bench.report`).
 """

@@ -41,7 +41,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import platform
 import statistics
 import tempfile
@@ -51,6 +50,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from ._common import fmt, markdown_table, median
 
 __all__ = ["CONFIGURATIONS", "Configuration", "main", "plot_results", "reach_fractions", "summarize", "tables"]
 
@@ -283,11 +283,6 @@ def run_configuration(
 
 
 # --------------------------------------------------------------------------- summarising
-def _median(values: Sequence[float]) -> float:
-    values = [v for v in values if v is not None and not math.isnan(v)]
-    return float(statistics.median(values)) if values else float("nan")
-
-
 def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """Medians over seeds per (scene, configuration), with ratios against the scene's baseline
     (the first configuration of the scene marked ``baseline``, else its first one that ran).
@@ -315,24 +310,24 @@ def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "status": mine[0]["status"],
             "seeds": len(mine),
             "steps": mine[0]["steps"],
-            "seconds_per_step": _median([_median(r["step_seconds"][1:] or r["step_seconds"]) for r in mine]),
-            "first_step_seconds": _median([r["step_seconds"][0] for r in mine]),
-            "paths_per_step": _median([_median(r["paths_per_step"][1:] or r["paths_per_step"]) for r in mine]),
-            "peak_rss_mb": _median([r["peak_rss_mb"] for r in mine]),
-            "rss_growth_mb": _median([r["peak_rss_mb"] - r["rss_start_mb"] for r in mine]),
-            "final_param_error": _median([r["final_param_error"] for r in mine]),
-            "initial_param_error": _median([r["param_error"][0] for r in mine]),
-            "best_param_error": _median([min(r["param_error"]) for r in mine]),
-            "best_step": _median([float(r["param_error"].index(min(r["param_error"]))) for r in mine]),
-            "final_image_error": _median([r["final_image_error"] for r in mine]),
-            "train_seconds": _median([r["train_seconds"] for r in mine]),
+            "seconds_per_step": median([median(r["step_seconds"][1:] or r["step_seconds"]) for r in mine]),
+            "first_step_seconds": median([r["step_seconds"][0] for r in mine]),
+            "paths_per_step": median([median(r["paths_per_step"][1:] or r["paths_per_step"]) for r in mine]),
+            "peak_rss_mb": median([r["peak_rss_mb"] for r in mine]),
+            "rss_growth_mb": median([r["peak_rss_mb"] - r["rss_start_mb"] for r in mine]),
+            "final_param_error": median([r["final_param_error"] for r in mine]),
+            "initial_param_error": median([r["param_error"][0] for r in mine]),
+            "best_param_error": median([min(r["param_error"]) for r in mine]),
+            "best_step": median([float(r["param_error"].index(min(r["param_error"]))) for r in mine]),
+            "final_image_error": median([r["final_image_error"] for r in mine]),
+            "train_seconds": median([r["train_seconds"] for r in mine]),
         })
     for scene, rows in scenes.items():
         base = next((r for r in rows if r["config"] == baselines.get(scene)), rows[0])
         for r in rows:
             r["baseline"] = base["config"]
             reached = reach_fractions(runs, scene, r["config"], base["config"])
-            r["time_to_baseline_error"] = _median(reached) if reached and all(v == v for v in reached) else float("nan")
+            r["time_to_baseline_error"] = median(reached) if reached and all(v == v for v in reached) else float("nan")
             r["reached_baseline_error"] = sum(v == v for v in reached)
             for k in ("seconds_per_step", "paths_per_step", "peak_rss_mb", "final_param_error", "final_image_error", "train_seconds"):
                 r[f"ratio_{k}"] = r[k] / base[k] if base[k] else float("nan")
@@ -354,18 +349,6 @@ def reach_fractions(runs: list[dict[str, Any]], scene: str, config: str, baselin
         hit = next((t for t, e in zip(run["elapsed"], run["param_error"]) if e <= goal), None)
         out.append(hit / base["train_seconds"] if hit is not None and base["train_seconds"] else float("nan"))
     return out
-
-
-def _fmt(value: Any) -> str:
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "n/a"
-        return f"{value:.3g}" if abs(value) < 1e5 else f"{value:.3e}"
-    return str(value).replace("|", "/")  # a "|" inside a cell would split it
-
-
-def _table(header: list[str], rows: list[list[Any]]) -> list[str]:
-    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header), *["| " + " | ".join(_fmt(v) for v in row) + " |" for row in rows]]
 
 
 def _clear(row: dict[str, Any]) -> str:
@@ -397,7 +380,7 @@ def _claim(summary: dict[str, Any]) -> list[str]:
         f"{'yes' if beats['final_param_error'] else 'no'}; the lowest final image error: "
         f"{'yes' if beats['final_image_error'] else 'no'}."),
         "",
-        *_table(["configuration", "final param RMSE", "best param RMSE", "image MSE", "total s"], table),
+        *markdown_table(["configuration", "final param RMSE", "best param RMSE", "image MSE", "total s"], table),
     ]
 
 
@@ -419,22 +402,22 @@ def tables(summary: dict[str, Any], meta: dict[str, Any]) -> str:
     ]
     for scene, rows in summary["scenes"].items():
         lines += ["", f"#### {scene}", ""]
-        lines += _table(
+        lines += markdown_table(
             ["configuration", "s/step", "x time/step", "1st step s", "total s", "x total", "x time to baseline's final error",
              "paths/step", "peak RSS MB", "RSS growth MB", "param RMSE (init -> final)", "x param err", "best param RMSE (step)",
              "image MSE", "x image err"],
             [[r["config"] + ("" if r["status"] == "ran" else f" ({r['status']})"), r["seconds_per_step"], r["ratio_seconds_per_step"],
               r["first_step_seconds"], r["train_seconds"], r["ratio_train_seconds"],
-              f"{_fmt(r.get('time_to_baseline_error', float('nan')))} ({r.get('reached_baseline_error', 0)}/{r['seeds']} seeds)",
+              f"{fmt(r.get('time_to_baseline_error', float('nan')))} ({r.get('reached_baseline_error', 0)}/{r['seeds']} seeds)",
               r["paths_per_step"], r["peak_rss_mb"], r["rss_growth_mb"],
-              f"{_fmt(r['initial_param_error'])} -> {_fmt(r['final_param_error'])}", r["ratio_final_param_error"],
-              f"{_fmt(r['best_param_error'])} ({r['best_step']:.0f})",
+              f"{fmt(r['initial_param_error'])} -> {fmt(r['final_param_error'])}", r["ratio_final_param_error"],
+              f"{fmt(r['best_param_error'])} ({r['best_step']:.0f})",
               r["final_image_error"], r["ratio_final_image_error"]] for r in rows],
         )
     lines += _claim(summary)
     if summary["rejected"]:
         lines += ["", "#### Rejected / unsupported combinations", ""]
-        lines += _table(
+        lines += markdown_table(
             ["scene", "configuration", "outcome", "where", "clear error?", "why (expected)", "error"],
             [[r["scene"], r["config"], "rejected" if r["status"] == "rejected" else "unsupported (fails)",
               r.get("stage", ""), _clear(r), r.get("note", ""), f"`{r['error']}`"] for r in summary["rejected"]],
@@ -481,7 +464,7 @@ def plot_results(runs: list[dict[str, Any]], out: Path) -> list[Path]:
         scene = mine[0]["scene"]
         ax.scatter([r["train_seconds"] for r in mine], [r["final_param_error"] for r in mine], color=colours[name],
                    marker=markers[scene], alpha=0.45, s=22)
-        ax.scatter([_median([r["train_seconds"] for r in mine])], [_median([r["final_param_error"] for r in mine])],
+        ax.scatter([median([r["train_seconds"] for r in mine])], [median([r["final_param_error"] for r in mine])],
                    color=colours[name], marker=markers[scene], s=110, edgecolors="black", label=f"{scene}: {name}")
     ax.set(xlabel="total training wall time (s)", ylabel="final parameter RMSE", xscale="log", yscale="log",
            title="Pareto: error reached vs time spent (small: seeds, large: median)")

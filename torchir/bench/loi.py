@@ -54,6 +54,7 @@ import torch
 import torchir
 from torchir.modules import GaussianPyramidLoss, LOILoss, MultiScaleL2Loss
 from torchir.modules._banded import native_available, native_products
+from ._common import median
 
 LossFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 METHODS = ("l2", "gp", "ms_l2", "sigma_w1", "loi", "loi_exact", "loi_cells")
@@ -310,8 +311,8 @@ def summarise(runs: list[dict[str, Any]], methods: Sequence[str]) -> dict[str, A
     b1 = [r for r in runs if r["bench"] == "B1"]
     if b1:
         out["B1"] = {m: dict(successes=sum(r["success"] for r in b1 if r["method"] == m), runs=sum(r["method"] == m for r in b1),
-                             median_error=_median([r["error"] for r in b1 if r["method"] == m]),
-                             loss_seconds_per_run=_median([r["loss_seconds"] for r in b1 if r["method"] == m]))
+                             median_error=median([r["error"] for r in b1 if r["method"] == m]),
+                             loss_seconds_per_run=median([r["loss_seconds"] for r in b1 if r["method"] == m]))
                      for m in methods}
     b2 = [r for r in runs if r["bench"] == "B2"]
     if b2:
@@ -322,17 +323,12 @@ def summarise(runs: list[dict[str, Any]], methods: Sequence[str]) -> dict[str, A
     b3 = [r for r in runs if r["bench"] == "B3"]
     if b3:
         out["B3"] = {str(n): {m: dict(mean_psnr=_mean([r["psnr"] for r in b3 if r["n"] == n and r["method"] == m]),
-                                      median_psnr=_median([r["psnr"] for r in b3 if r["n"] == n and r["method"] == m]),
+                                      median_psnr=median([r["psnr"] for r in b3 if r["n"] == n and r["method"] == m]),
                                       recovered=_mean([r["recovered"] for r in b3 if r["n"] == n and r["method"] == m]),
                                       all_recovered=sum(r["success"] for r in b3 if r["n"] == n and r["method"] == m),
                                       runs=sum(r["n"] == n and r["method"] == m for r in b3)) for m in methods}
                      for n in dict.fromkeys(r["n"] for r in b3)}
     return out
-
-
-def _median(v):
-    v = sorted(v)
-    return v[len(v) // 2] if v else float("nan")
 
 
 def _mean(v):

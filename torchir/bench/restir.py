@@ -86,6 +86,7 @@ from pathlib import Path
 from typing import Any
 
 from torchir.bench import combined
+from ._common import fmt, markdown_table, median, sync_time
 
 __all__ = ["ALL_RESTIRS", "BASELINES", "METHODS", "ORACLE", "ORACLE_LOW", "bracketing_spps", "camera_floor", "equal_time_error",
            "error_beyond_reference",
@@ -237,13 +238,6 @@ def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None
 
 
 # ----------------------------------------------------------------------- gradient error
-def _sync_time() -> float:
-    import drjit as dr
-
-    dr.sync_thread()
-    return time.perf_counter()
-
-
 @dataclass
 class Problem:
     """One scene's fixed gradient problem: the L2 adjoint at the grey texture and its reference."""
@@ -278,10 +272,10 @@ class Problem:
 
         t = self.grey.clone().requires_grad_()
         extra = {} if sampler is None else {"sampler": sampler}
-        t0 = _sync_time()
+        t0 = sync_time()
         image = render(self.scene, {self.key: t}, spp=spp, seed=seed, **extra)
         (image * self.adjoint).sum().backward()
-        seconds = _sync_time() - t0
+        seconds = sync_time() - t0
         error = float((t.grad - self.g_ref).norm() / self.g_ref.norm())
         return seconds, error, (sampler.diagnostics() if sampler is not None else {})
 
@@ -587,11 +581,6 @@ def reconstruction(name: str, key: str, a: argparse.Namespace, budget_method: st
 
 
 # ----------------------------------------------------------------------------- summary
-def _median(values: Sequence[float]) -> float:
-    values = [v for v in values if v is not None and not math.isnan(v)]
-    return float(statistics.median(values)) if values else float("nan")
-
-
 def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int],
                     recon: dict[str, list[dict[str, Any]]] | None = None,
                     oracle_candidates: tuple[int | None, int] = (None, 256), budget: float | None = None) -> dict[str, Any]:
@@ -662,11 +651,11 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
             for m in methods:
                 mine = [r for r in mode_runs if r["method"] == m]
                 summary[m] = {
-                    "recon_rmse": _median([r["final_param_error"] for r in mine]),
-                    "recon_initial_rmse": _median([r["param_error"][0] for r in mine]),
-                    "recon_steps": _median([float(r["steps"]) for r in mine]),
-                    "recon_seconds": _median([r["train_seconds"] for r in mine]),
-                    "train_step_seconds": _median([_median(r["step_seconds"][1:] or r["step_seconds"]) for r in mine]),
+                    "recon_rmse": median([r["final_param_error"] for r in mine]),
+                    "recon_initial_rmse": median([r["param_error"][0] for r in mine]),
+                    "recon_steps": median([float(r["steps"]) for r in mine]),
+                    "recon_seconds": median([r["train_seconds"] for r in mine]),
+                    "train_step_seconds": median([median(r["step_seconds"][1:] or r["step_seconds"]) for r in mine]),
                 }
             best_recon = min(BASELINES, key=lambda m: summary[m]["recon_rmse"])
             for m in methods:
@@ -678,22 +667,6 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
             rows[m].update(out["reconstruction_summary"][primary]["rows"][m], recon_grad_paths=primary)
         out["best_recon_baseline"] = out["reconstruction_summary"][primary]["best_baseline"]
     return out
-
-
-def _fmt(value: Any) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "n/a"
-        if math.isinf(value):
-            return "inf"
-        return f"{value:.3g}" if abs(value) < 1e5 else f"{value:.3e}"
-    return str(value).replace("|", "/")
-
-
-def _table(header: list[str], rows: list[list[Any]]) -> list[str]:
-    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header), *["| " + " | ".join(_fmt(v) for v in row) + " |" for row in rows]]
 
 
 def _oracle_counts(cfg: dict[str, Any]) -> str:
@@ -754,11 +727,11 @@ def tables(results: dict[str, Any]) -> str:
         recon = "recon_rmse" in rows[methods[0]]
         ref = scene["reference"]
         lines += ["", f"#### {name}", "",
-                  (f"Floor at {spp} spp: {_fmt(rows[ORACLE]['floor'])} (oracle errors: "
-                   + ", ".join(f"{m} candidates {_fmt(e)}" for m, e in sorted(rows[ORACLE].get("oracle_errors", {}).items(), key=lambda kv: int(kv[0])))
-                   + f"); reference relative SE {_fmt(ref['relative_se'])} (removed from "
+                  (f"Floor at {spp} spp: {fmt(rows[ORACLE]['floor'])} (oracle errors: "
+                   + ", ".join(f"{m} candidates {fmt(e)}" for m, e in sorted(rows[ORACLE].get("oracle_errors", {}).items(), key=lambda kv: int(kv[0])))
+                   + f"); reference relative SE {fmt(ref['relative_se'])} (removed from "
                    f"every error, in quadrature); best baseline at equal time: {best}; equal-time budget "
-                   f"{_fmt(scene['calibration']['budget_seconds'])} s/step ({scene['calibration']['budget_method']})."
+                   f"{fmt(scene['calibration']['budget_seconds'])} s/step ({scene['calibration']['budget_method']})."
                    + (" Warning: the reference's noise is over a third of the floor: raise --ref-spp." if ref["relative_se"] > rows[ORACLE]["floor"] / 3 else "")),
                   ""]
         header = ["method", f"relerr ({spp} spp)", "floor", "light part", "relerr eq. time", "spp eq. time", "s/step eq. time (burn-in charged)",
@@ -779,7 +752,7 @@ def tables(results: dict[str, Any]) -> str:
             if recon:
                 line += [r.get("train_step_seconds"), r.get("train_step_ratio_to_direct")] if m != ORACLE else [None, None]
             body.append(line)
-        lines += _table(header, body)
+        lines += markdown_table(header, body)
         extra = scene.get("unfrozen_stages") or {}
         stage_rows = [(m, rows[m]) for m in (*methods, ORACLE)] + list(extra.items())
         present = [st for st in STAGES if any(st in r["stages"] for _, r in stage_rows)]
@@ -787,7 +760,7 @@ def tables(results: dict[str, Any]) -> str:
                   "without the burn-in, which is given once; stages: medians of the integrator's timers (pass: a frozen "
                   "resampling pass, replayed by dr.freeze, has one timer; the rows marked unfrozen show where its time goes "
                   "when traced); other: the rest of the step, e.g. the torch/Dr.Jit boundary):", ""]
-        lines += _table(["method", "s/step", "burn-in (once)", *present, "other", "x B.2 step"],
+        lines += markdown_table(["method", "s/step", "burn-in (once)", *present, "other", "x B.2 step"],
                         [[m, r["seconds_per_step"], r.get("burn_in_seconds") if m in restirs else None,
                           *[r["stages"].get(st) for st in present], r["stages"].get("other"),
                           r["seconds_per_step"] / rows["B.2"]["seconds_per_step"]] for m, r in stage_rows])
@@ -795,18 +768,18 @@ def tables(results: dict[str, Any]) -> str:
         if len(modes) > 1:
             lines += ["", "Reconstruction by the samplers' gradient paths (texture RMSE after the equal wall time; steps; "
                       "x the best baseline's RMSE in that mode):", ""]
-            lines += _table(["method", *[f"{mode}: RMSE (steps)" for mode in modes], *[f"{mode}: x best baseline" for mode in modes],
+            lines += markdown_table(["method", *[f"{mode}: RMSE (steps)" for mode in modes], *[f"{mode}: x best baseline" for mode in modes],
                              *[f"{mode}: train s/step" for mode in modes]],
-                            [[m, *[f"{_fmt(v['rows'][m]['recon_rmse'])} ({_fmt(v['rows'][m]['recon_steps'])})" for v in modes.values()],
+                            [[m, *[f"{fmt(v['rows'][m]['recon_rmse'])} ({fmt(v['rows'][m]['recon_steps'])})" for v in modes.values()],
                               *[v["rows"][m]["recon_ratio_to_best_baseline"] for v in modes.values()],
                               *[v["rows"][m]["train_step_seconds"] for v in modes.values()]] for m in methods])
         for m in restirs:
             overview.append([name, m, rows[ORACLE]["floor"], rows[m]["relerr_equal_samples"], rows["B.2"]["relerr_equal_samples"],
-                             f"{best} {_fmt(rows[best]['relerr_equal_time'])}", gain_text(rows[m], best, m),
+                             f"{best} {fmt(rows[best]['relerr_equal_time'])}", gain_text(rows[m], best, m),
                              1.0 / rows[m]["recon_ratio_to_best_baseline"] if recon else None,
                              rows[m]["step_ratio_to_B.2"], rows[m].get("train_step_ratio_to_direct")])
     lines += ["", "#### Overview", ""]
-    lines += _table(["scene", "method", f"floor ({spp} spp)", f"relerr ({spp} spp)", f"B.2 ({spp} spp)", "best baseline eq. time",
+    lines += markdown_table(["scene", "method", f"floor ({spp} spp)", f"relerr ({spp} spp)", f"B.2 ({spp} spp)", "best baseline eq. time",
                      "gain (eq. time)", "recon: best baseline RMSE / method's", "step / B.2 step", "train step / direct train step"], overview)
     if results.get("skipped_scenes"):
         lines += ["", f"Default scenes not run: {', '.join(results['skipped_scenes'])}."]

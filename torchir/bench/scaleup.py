@@ -57,7 +57,8 @@ from pathlib import Path
 from typing import Any
 
 from torchir.bench import combined
-from torchir.bench.combined import _median, reach_fractions  # reach_fractions: per seed, against a reference run
+from torchir.bench._common import median
+from torchir.bench.combined import reach_fractions  # per seed, against a reference run
 
 __all__ = ["CONFIGURATIONS", "WORKLOADS", "Workload", "main", "reach_fractions", "summarize", "tables"]
 
@@ -142,16 +143,16 @@ def summarize(runs: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
                 continue
             row = {
                 "config": config, "status": "ran", "seeds": len(mine),
-                "seconds_per_step": _median([_median(r["step_seconds"][1:]) for r in mine]),
-                "steps": _median([r["steps"] for r in mine]),
-                "initial_param_error": _median([r["param_error"][0] for r in mine]),
-                "final_param_error": _median([r["final_param_error"] for r in mine]),
-                "best_param_error": _median([min(r["param_error"]) for r in mine]),
-                "train_seconds": _median([r["train_seconds"] for r in mine]),
+                "seconds_per_step": median([median(r["step_seconds"][1:]) for r in mine]),
+                "steps": median([r["steps"] for r in mine]),
+                "initial_param_error": median([r["param_error"][0] for r in mine]),
+                "final_param_error": median([r["final_param_error"] for r in mine]),
+                "best_param_error": median([min(r["param_error"]) for r in mine]),
+                "train_seconds": median([r["train_seconds"] for r in mine]),
             }
             for ref in REFERENCES:
                 fractions = reach_fractions(runs, workload, config, ref)
-                row[f"reach {ref}"] = (_median(fractions), sum(f == f for f in fractions), len(fractions))
+                row[f"reach {ref}"] = (median(fractions), sum(f == f for f in fractions), len(fractions))
             out.setdefault(workload, []).append(row)
     return out
 
