@@ -58,14 +58,9 @@ def run_in_fresh_process(code: str, timeout: float = 300.0) -> str:
     """Run ``code`` (a Python program that asserts what it checks) in a new interpreter and
     return its stdout; fails the calling test with the program's stderr if it did.
 
-    For tests of frozen render passes on scenes of their own: Dr.Jit 1.5 traverses, and after a
-    frozen replay assigns, every instance in its registry, so other tests' live scenes are part of
-    each recording. In one fixed full-suite order (pytest-randomly seed 4242) the session
-    ``cbox``'s ``large-box`` vertex buffer was read back changed after
-    ``test_frozen_replays_match_a_fresh_unfrozen_call`` (and then after later tests: memory freed
-    and reused); with the pixel passes unfrozen it was not (one run). With this test in its own
-    process the same order still showed the change, after another test: the buffer is freed
-    earlier than it is seen, so isolation does not remove the cause, only this test's exposure.
+    For tests of frozen render passes that count recordings or compare replays on scenes of
+    their own: Dr.Jit 1.5 traverses, and after a frozen call assigns, every instance in its
+    registry, so other tests' live scenes are part of each recording (and of its key).
     In a fresh process only the test's own scenes exist."""
     import subprocess
     import sys

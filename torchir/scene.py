@@ -22,6 +22,7 @@ import difflib
 import math
 import os
 import warnings
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -199,6 +200,15 @@ def _unbindable_hint(name: str, type_name: str) -> str:
     return "torchir binds float textures/tensors, float arrays, colours, points, vectors and 4x4 transforms"
 
 
+_LIVE: weakref.WeakSet = weakref.WeakSet()
+
+
+def live_scenes() -> list[Scene]:
+    """The torchir scenes alive in this process (the frozen passes guard their buffers:
+    :mod:`torchir.functions._replay_guard`)."""
+    return list(_LIVE)
+
+
 class Scene:
     """A Mitsuba 3 scene that torch code renders and differentiates.
 
@@ -226,6 +236,7 @@ class Scene:
         self._warned: set[str] = set()
         self.derived: dict[str, DerivedParameter] = {}  # reparameterisations declared by the scene
         self.is_builtin = False  # made by Scene.builtin (not from a user's file or dict)
+        _LIVE.add(self)
 
     # ----------------------------------------------------------------------------- loading
     @classmethod

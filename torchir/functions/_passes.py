@@ -22,6 +22,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .. import backend
+from .._frozen import freeze
 from ..scene import Scene
 from ..welding import WeldedFaces, moving_meshes
 
@@ -53,8 +54,8 @@ class RenderPasses:
         self.scene = weakref.proxy(scene)
         self.frozen = backend.frozen_renders() and _freezable(scene.integrator)
         limit = backend.frozen_recordings(scene.sensor_count)
-        self._primal = dr.freeze(_primal, limit=limit, warn_after=limit)
-        self._adjoint = dr.freeze(_adjoint, limit=limit, warn_after=limit)
+        self._primal = freeze(_primal, limit=limit, warn_after=limit)
+        self._adjoint = freeze(_adjoint, limit=limit, warn_after=limit)
 
     @property
     def recordings(self) -> int:

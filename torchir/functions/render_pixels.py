@@ -19,6 +19,7 @@ import mitsuba as mi
 import torch
 
 from .. import backend
+from .._frozen import freeze
 from ..scene import Scene
 from . import _args
 from ._bound_op import BoundRenderOp
@@ -148,9 +149,9 @@ class _PixelPasses:
         self.full_passes = passes(scene)  # whose rules say which bindings replay correctly
         self.seen: dict[tuple, int] = {}
         self.limit = limit = backend.frozen_recordings(scene.sensor_count)
-        self._primal = dr.freeze(_primal_pass, limit=limit, warn_after=limit)
-        self._adjoint = dr.freeze(_adjoint_pass, limit=limit, warn_after=limit)
-        self._one_path = dr.freeze(_one_path_pass, limit=limit, warn_after=limit)
+        self._primal = freeze(_primal_pass, limit=limit, warn_after=limit)
+        self._adjoint = freeze(_adjoint_pass, limit=limit, warn_after=limit)
+        self._one_path = freeze(_one_path_pass, limit=limit, warn_after=limit)
 
     def _frozen(self, key: tuple) -> bool:
         if key not in self.seen and len(self.seen) >= 4 * self.limit:  # forget counts used once

@@ -142,6 +142,7 @@ import numpy as np
 from mitsuba.python.ad.integrators.common import RBIntegrator
 
 from .. import backend
+from .._frozen import freeze as guarded_freeze
 from ..scene import is_geometry_key
 from ..welding import WeldedFaces, moving_meshes
 from . import _knn, _light_guide, _shading_bands, _shadow_edges, _silhouettes
@@ -509,7 +510,7 @@ class ReSTIRDirectIntegrator(RBIntegrator):
             return False
         # one recording per sensor and pass kind (fresh RIS, reuse) is expected
         recordings = backend.frozen_recordings(len(scene.sensors()))
-        self._frozen_pass, self._geometry_frozen = dr.freeze(self._pass, warn_after=recordings), now
+        self._frozen_pass, self._geometry_frozen = guarded_freeze(self._pass, warn_after=recordings), now
         return True
 
     def _pass(self, seed, scene, sensor, spp, prev, radius, source, k, layout, zero_remainder, buckets, keep_offsets,
