@@ -56,6 +56,7 @@ def meter_dict() -> dict:
 
 
 # ------------------------------------------------------------------------ render_pixels
+@pytest.mark.frozen
 @pytest.mark.parametrize("dtype", [torch.int64, torch.int32])
 def test_pixels_and_gradient_in_closed_form(wall, dtype, strict_warnings, settled_registry):
     """Values and gradient of listed pixels (unsorted, repeated), traced, recorded, replayed."""
@@ -151,6 +152,7 @@ def fallback_warnings(record) -> list[str]:
     return messages
 
 
+@pytest.mark.frozen
 def test_thin_lens_falls_back_loudly_and_agrees_with_render():
     """A thin lens cannot be frozen (Mitsuba 3.9): the second call of a count, which records,
     falls back to unfrozen passes with one warning, as render() does (it raised before). The
@@ -171,6 +173,7 @@ def test_thin_lens_falls_back_loudly_and_agrees_with_render():
     assert float(((a.mean(0) - sharp) / se).abs().max()) > 8  # the blur is resolved
 
 
+@pytest.mark.frozen
 def test_unfreezable_pixel_gradient_and_probe_fall_back():
     index = torch.tensor([7, 8, 15, 16])  # inner pixels: every blurred path still hits the wall
     for call in ("adjoint", "probe"):
@@ -200,6 +203,7 @@ def test_per_lane_and_seeded_sampler():
     assert np.array_equal(x, y) and not np.array_equal(x, z) and len(set(x.tolist())) == 4
 
 
+@pytest.mark.frozen
 def test_frozen_counts_from_their_second_use():
     scene = torchir.Scene.from_dict(wall_dict())
     passes = rp._pixel_passes(scene)
@@ -246,6 +250,7 @@ def test_render_pixels_with_a_different_count_each_call(strict_warnings):
     assert (passes._primal.n_recordings, passes._adjoint.n_recordings, passes._one_path.n_recordings) == (0, 0, 0)
 
 
+@pytest.mark.frozen
 def test_pixel_recordings_are_bounded(strict_warnings):
     """Each pixel pass keeps at most ``limit`` recordings (one per lane count; 8 + 2 per sensor)."""
     scene = torchir.Scene.from_dict(wall_dict())
@@ -370,6 +375,7 @@ def test_grid_lanes():
     assert [a.numpy().tolist() for a in lanes] == [a.tolist() for a in (xs, ys, ws, hs)]
 
 
+@pytest.mark.frozen
 def test_probe_radiance_and_derivative_in_closed_form(wall, strict_warnings, settled_registry):
     """Three grids (full, half, half again): each probe pixel is the block it covers, the
     derivative along a tangent is that tangent; traced, recorded, then replayed."""
@@ -491,6 +497,7 @@ def test_listed_sensors_gradient_matches_finite_differences(views3):
     assert gradcheck(loss, {MV_KEY: views3.get(MV_KEY).requires_grad_()}, seeds=range(6), directions=2)
 
 
+@pytest.mark.frozen
 def test_listed_sensors_replay_frozen_whatever_the_per_view_counts(views3, settled_registry):
     """One wavefront keys its recording on the listed sensors and the total count only: batches
     whose per-view counts change every step replay one recording (per-view passes re-traced)."""

@@ -229,6 +229,7 @@ print("ok")
     assert run_in_fresh_process(code).split()[-1] == "ok"
 
 
+@pytest.mark.frozen
 def test_probe_records_once_across_refreshes():
     """New seeds replay one recording. Building the constant lane arrays afresh for every call
     made the frozen pass re-record on some calls, varying from run to run. Run in a fresh

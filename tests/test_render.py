@@ -237,6 +237,7 @@ def test_frozen_and_unfrozen_passes_agree_exactly():
     torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-6, atol=0)
 
 
+@pytest.mark.frozen
 def test_warm_frozen_passes_do_not_retrace(cbox):
     from torchir.functions._passes import passes
 
@@ -352,6 +353,7 @@ def test_render_takes_any_sampler_with_its_own_integrator(cbox, red):
         render(cbox, {KEY: red}, spp=1, sampler=object())
 
 
+@pytest.mark.frozen
 def test_many_views_replay_without_re_recording(capfd):
     """A frozen pass keeps a recording per sensor: with more sensors than the base LRU bound (8),
     rendering every view each epoch used to re-record every call (16 views: ~1.6 s a step).

@@ -119,6 +119,7 @@ def test_warns_about_non_box_filters():
         render_pixels(scene, {}, torch.tensor([0]), spp=1)
 
 
+@pytest.mark.frozen
 def test_frozen_replays_match_a_fresh_unfrozen_call():
     """From the second use of a pixel count, the passes are frozen; a replay with new pixels,
     values and seeds gives what a fresh (unfrozen) scene gives for the same call. In a fresh

@@ -850,6 +850,7 @@ def test_diagnostics_keys(oxalis, freeze):
     assert 2 < d["mean_M"] <= d["max_M"] == 4.0
 
 
+@pytest.mark.frozen
 def test_documented_defaults(oxalis):
     """The parameter table of ``integrators/restir_di.py`` and ReSTIRSampler's signature: the M
     cap is 2 x candidates unless set (spec D2's 20 x keeps stale samples too long)."""
@@ -1102,6 +1103,7 @@ def test_frozen_pass_follows_a_moving_camera():
         assert not torch.equal(images[True, preset][1], images[True, preset][2])
 
 
+@pytest.mark.frozen
 def test_freeze_follows_torchirs_switch_and_falls_back_loudly(oxalis):
     """``freeze=None`` follows :func:`torchir.backend.frozen_renders` (``TORCHIR_FREEZE``), as
     plain renders do; a frozen pass that raises warns and the integrator runs traced."""

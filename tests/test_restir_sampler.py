@@ -56,6 +56,7 @@ def _raises(exc, fn, *args, **kw) -> str:
 
 
 # ------------------------------------------------------------------------------ options
+@pytest.mark.frozen
 def test_defaults(scene):
     r = ReSTIRSampler(scene)
     assert isinstance(r.integrator, _integrator_module().ReSTIRDirectIntegrator)
