@@ -44,6 +44,15 @@ def _value(params: Any, entry: tuple) -> Any:
     return handle if value_type is None else params.get_property(handle, value_type, node)
 
 
+def _put(params: Any, entry: tuple, value: Any) -> None:
+    """Set the member behind ``entry`` without marking it dirty (the twin of :func:`_value`)."""
+    handle, value_type, _node, _flags = entry
+    if value_type is None:
+        params.set_property(handle, value)
+    else:
+        params.set_property(handle, value_type, value)
+
+
 def _buffers(params: Any) -> Iterator[tuple[tuple, Any]]:
     """``(property entry, live value)`` of each Dr.Jit buffer (an array wider than 1 or a tensor,
     not a literal or a transform) among ``params``."""
@@ -68,11 +77,7 @@ def replay_guard() -> Iterator[None]:
     finally:
         for params, entry, original, index in held:
             if _index(_value(params, entry)) != index:
-                handle, value_type, _node, _flags = entry
-                if value_type is None:
-                    params.set_property(handle, original)
-                else:
-                    params.set_property(handle, value_type, original)
+                _put(params, entry, original)
                 _REPAIRS[0] += 1
 
 

@@ -155,7 +155,6 @@ from .restir_options import ReSTIROptions
 
 __all__ = ["ReSTIRDirectIntegrator", "ReSTIROptions", "check_scene", "StepCache"]
 
-MULTIVIEW = ("auto", "per_sensor", "carry_over")
 STORE = -1  # the state key of the one reservoir store of multiview="carry_over"
 LOADED = ("loaded",)  # SensorState.geometry of reservoirs loaded from a state dict
 
