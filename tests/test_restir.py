@@ -61,7 +61,7 @@ def test_ris_m1_equals_light_sampling_lane_for_lane(oxalis):
     """B.1 (one candidate, no reuse) is exactly next-event estimation with Mitsuba's
     ``sample_emitter_direction`` and the same random numbers."""
     from torchir.integrators._film import develop
-    from torchir.integrators.restir_di import _sample_rays
+    from torchir.integrators._restir_pass import sample_rays
 
     r = ReSTIRSampler(oxalis, preset="b1")
     img = render(oxalis, {}, spp=1, seed=3, sampler=r).permute(1, 2, 0).numpy()
@@ -73,7 +73,7 @@ def test_ris_m1_equals_light_sampling_lane_for_lane(oxalis):
     sampler.set_sample_count(1)
     sampler.set_samples_per_wavefront(1)
     sampler.seed(3, n)
-    ray, weight, _ = _sample_rays(sensor, sampler, 1, RES, RES)
+    ray, weight, _ = sample_rays(sensor, sampler, 1, RES, RES)
     si = scene.ray_intersect(mi.Ray3f(ray))
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, si.is_valid())
     fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), si.is_valid())
@@ -213,7 +213,7 @@ def test_redrawn_lanes_each_with_probability_one_over_the_lifetime(n, lifetime):
     """Each step redraws floor(n / lifetime) or one more lanes, those its slots name, and each
     lane with probability 1 / lifetime (binomial bound over 400 steps)."""
     torchir.backend.set_variant("auto")
-    from torchir.integrators.restir_di import RedrawnLanes
+    from torchir.integrators._restir_pass import RedrawnLanes
 
     lane = dr.arange(mi.UInt32, n)
     counts = np.zeros(n)
@@ -240,7 +240,7 @@ def test_young_continuation_is_ris_over_all_its_helpers_candidates(oxalis):
     first, uniformly) would weight the emitters by their candidate density (uniform over the
     many dim and hidden lights), not by p̂ (the two spots)."""
     from torchir.integrators._light import FORWARD_FLAGS
-    from torchir.integrators.restir_di import RedrawnLanes, _sample_rays
+    from torchir.integrators._restir_pass import RedrawnLanes, sample_rays, streaming_ris, young_continuation
 
     integrator = ReSTIRSampler(oxalis, preset="persistent", candidates=2, burn_in=2, offset_lifetime=4.0).integrator
     scene, sensor = oxalis.mi_scene, oxalis.mi_scene.sensors()[0]
@@ -249,7 +249,7 @@ def test_young_continuation_is_ris_over_all_its_helpers_candidates(oxalis):
     with dr.suspend_grad():
         sampler = sensor.sampler().fork()
         sampler.seed(0, n)
-        ray, _, _ = _sample_rays(sensor, sampler, 1, w, h)
+        ray, _, _ = sample_rays(sensor, sampler, 1, w, h)
         pi = scene.ray_intersect_preliminary(mi.Ray3f(ray), coherent=True)
         si = pi.compute_surface_interaction(mi.Ray3f(ray), FORWARD_FLAGS)
         valid, lane = si.is_valid(), dr.arange(mi.UInt32, n)
@@ -258,11 +258,11 @@ def test_young_continuation_is_ris_over_all_its_helpers_candidates(oxalis):
             opaque_seed = dr.opaque(mi.UInt32, seed)
             redrawn = RedrawnLanes(n, 4.0, opaque_seed)
             young = valid & redrawn.mask(lane)
-            y, _, _, w_sum, m = integrator._young_continuation(scene, sensor, opaque_seed, ray, pi, young, redrawn,
-                                                               extra)
+            y, _, _, w_sum, m = young_continuation(scene, sensor, opaque_seed, ray, pi, young, redrawn, extra,
+                                                   integrator.shadowed)
             assert m == extra  # c = 1 candidate on each of P = 4 helpers
             sampler.seed(dr.opaque(mi.UInt32, 10_000 + seed), n)
-            y_ref, _, _, w_ref, _ = integrator._streaming_ris(scene, si, sampler, valid, n, False, 64)
+            y_ref, _, _, w_ref, _ = streaming_ris(scene, si, sampler, valid, n, 64, shadowed=integrator.shadowed)
             at = np.asarray(young)
             ours = np.bincount(np.asarray(y.em)[at], np.asarray(w_sum)[at] / m, emitters)
             ref = np.bincount(np.asarray(y_ref.em)[at], np.asarray(w_ref)[at] / 64, emitters)
@@ -919,7 +919,7 @@ def area_scene() -> torchir.Scene:
 
 def test_area_light_m1_equals_light_sampling(area_scene):
     from torchir.integrators._film import develop
-    from torchir.integrators.restir_di import _sample_rays
+    from torchir.integrators._restir_pass import sample_rays
 
     r = ReSTIRSampler(area_scene, preset="b1")
     img = render(area_scene, {}, spp=1, seed=4, sampler=r).permute(1, 2, 0).numpy()
@@ -929,7 +929,7 @@ def test_area_light_m1_equals_light_sampling(area_scene):
     sampler.set_sample_count(1)
     sampler.set_samples_per_wavefront(1)
     sampler.seed(4, RES * RES)
-    ray, weight, _ = _sample_rays(sensor, sampler, 1, RES, RES)
+    ray, weight, _ = sample_rays(sensor, sampler, 1, RES, RES)
     si = scene.ray_intersect(mi.Ray3f(ray))
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, si.is_valid())
     fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), si.is_valid())

@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from torchir import backend  # noqa: E402
-from torchir.integrators import _knn, _light, restir_di  # noqa: E402
+from torchir.integrators import _knn, _light, _restir_pass, _restir_state, restir_di  # noqa: E402
 from torchir.integrators.restir_di import ReSTIRDirectIntegrator, check_scene  # noqa: E402
 
 RES = 8
@@ -308,8 +308,8 @@ def test_streaming_ris_equals_algorithm_a1(multi, target, monkeypatch):
     want, res = _ris(multi, 5, 2, 3, target == "shadowed")
     assert len(np.unique(res["em"][res["W"] > 0])) == 3  # every light is chosen somewhere
     for unrolled, symbolic_lanes in ((32, 0), (2, 0), (32, 10**9)):
-        monkeypatch.setattr(restir_di, "UNROLLED_CANDIDATES", unrolled)
-        monkeypatch.setattr(restir_di, "SYMBOLIC_UP_TO_LANES", symbolic_lanes)
+        monkeypatch.setattr(_restir_pass, "UNROLLED_CANDIDATES", unrolled)
+        monkeypatch.setattr(_restir_pass, "SYMBOLIC_UP_TO_LANES", symbolic_lanes)
         i = _integrator(candidates=3, temporal=False, spatial=False, burn_in=0, target=target, freeze=unrolled == 2)
         img, cache = i.step(multi, 0, 5, 2)
         np.testing.assert_allclose(_np(img), want, rtol=1e-5, atol=1e-6)
@@ -573,7 +573,7 @@ def test_footprints_and_radius(point):
     in the corners)."""
     base = 3 * 2 * math.tan(math.radians(25)) / RES
     flat = mi.load_dict(_with_only_floor())
-    radius, small = restir_di._footprints(flat, flat.sensors()[0], 0, 2, RES, RES)
+    radius, small = _restir_pass.footprints(flat, flat.sensors()[0], 0, 2, RES, RES)
     assert 2 * base * 0.95 <= radius <= 2 * base * 1.001 and base * 0.83 <= small <= base * 0.95
     assert small < radius / 2
     for opt, window in ((1e-3, 1), (1.5 * small, 2), (100.0, 3), (0.0, 3)):  # ceil(radius / small footprint) in [1, 3]
@@ -787,7 +787,7 @@ def test_albedo_gradient(point, target):
         g, _ = _backward(point, i, weights, 3, 2, 9, 1)
         elapsed = time.perf_counter() - t0
         np.testing.assert_allclose(g, want, rtol=2e-4, atol=1e-6, err_msg=str(opts))
-        assert (i.temporal, i.spatial) == saved and set(i.states) == ({restir_di.STORE} if opts is carry else {0})
+        assert (i.temporal, i.spatial) == saved and set(i.states) == ({_restir_state.STORE} if opts is carry else {0})
         assert type(i.timings["backward"]) is float and 0 < i.timings["backward"] <= elapsed  # within the call
 
 
@@ -974,7 +974,7 @@ def test_seen_by_the_four_sensors():
     assert valid.sum() > 0.5 * len(valid)
     counts = []
     for sensor in range(4):
-        seen = np.array(restir_di.seen_by(scene, sensor, r))
+        seen = np.array(_restir_state.seen_by(scene, sensor, r))
         want = _seen_reference(scene, sensor, p, n, valid)
         # a point within a float32 rounding of the film's edge may go either way
         assert (seen != want).sum() <= 2, (sensor, int((seen != want).sum()))
@@ -992,13 +992,13 @@ def test_project_gives_the_pixel_of_each_camera_ray():
     _, cache = _integrator(**B1).step(scene, 0, 3, spp)
     valid = np.array(cache.lanes.valid)
     assert valid.all()
-    inside, pixel = restir_di.project(scene.sensors()[0], cache.lanes)
+    inside, pixel = _restir_state.project(scene.sensors()[0], cache.lanes)
     assert np.array(inside).all()
     # a point within a float32 rounding of a pixel's edge may go either way
     assert (np.array(pixel) != np.arange(len(valid)) // spp).sum() <= 2
     lanes = cache.lanes
     lanes.valid = mi.Bool(np.arange(len(valid)) % 3 != 0)
-    assert np.array_equal(np.array(restir_di.project(scene.sensors()[0], lanes)[0]), np.arange(len(valid)) % 3 != 0)
+    assert np.array_equal(np.array(_restir_state.project(scene.sensors()[0], lanes)[0]), np.arange(len(valid)) % 3 != 0)
 
 
 def test_carry_over_keeps_what_the_rendering_view_does_not_see():
@@ -1007,27 +1007,27 @@ def test_carry_over_keeps_what_the_rendering_view_does_not_see():
     scene = _views_scene()
     i = _integrator(candidates=2, neighbors=2, burn_in=1, multiview="carry_over")
     i.step(scene, 0, 1, 1)
-    store0 = i.states[restir_di.STORE].prev
-    assert set(i.states) == {restir_di.STORE} and dr.width(store0.valid) == RES * RES
+    store0 = i.states[_restir_state.STORE].prev
+    assert set(i.states) == {_restir_state.STORE} and dr.width(store0.valid) == RES * RES
     _, cache = i.step(scene, 3, 2, 1)
-    store = i.states[restir_di.STORE].prev
-    kept = np.array(store0.valid) & ~np.array(restir_di.seen_by(scene, 3, store0))
+    store = i.states[_restir_state.STORE].prev
+    kept = np.array(store0.valid) & ~np.array(_restir_state.seen_by(scene, 3, store0))
     assert 0 < kept.sum() < np.array(store0.valid).sum()
     assert dr.width(store.valid) == RES * RES + kept.sum()
     np.testing.assert_array_equal(_np(store.p).T[: RES * RES], _np(cache.lanes.p).T)  # new first
     np.testing.assert_array_equal(_np(store.p).T[RES * RES:], _np(store0.p).T[kept])  # then the carried
     np.testing.assert_array_equal(_np(store.W)[RES * RES:], _np(store0.W)[kept])
-    assert cache.prev is store0 and i.states[restir_di.STORE].camera is None  # world-space search
+    assert cache.prev is store0 and i.states[_restir_state.STORE].camera is None  # world-space search
     restored = _integrator(candidates=2, neighbors=2, burn_in=1, multiview="carry_over")
     restored.load_state_dict(i.state_dict())  # the store survives a checkpoint
     np.testing.assert_array_equal(_np(restored.step(scene, 0, 3, 1)[0]), _np(i.step(scene, 0, 3, 1)[0]))
     # view 0 again: it sees (and replaces) its own old reservoirs
-    assert dr.width(i.states[restir_di.STORE].prev.valid) < dr.width(store.valid)
+    assert dr.width(i.states[_restir_state.STORE].prev.valid) < dr.width(store.valid)
     auto = _integrator(candidates=2, neighbors=2, burn_in=1)  # "auto": the store with several sensors
     auto.step(scene, 3, 1, 1)
     single = _integrator(candidates=2, neighbors=2, burn_in=1)
     single.step(mi.load_dict(_dict(False)), 0, 1, 1)
-    assert set(auto.states) == {restir_di.STORE} and set(single.states) == {0}
+    assert set(auto.states) == {_restir_state.STORE} and set(single.states) == {0}
     per = _integrator(candidates=2, neighbors=2, burn_in=1, multiview="per_sensor")
     per.step(scene, 0, 1, 1)
     per.step(scene, 3, 2, 1)
@@ -1047,7 +1047,7 @@ def test_carry_over_search_is_frozen_and_equals_the_traced_one():
             images[freeze].append(_np(i.step(scene, view, step, 1)[0]))
             if step > 0:
                 assert i.last_pass_frozen == freeze and i._neighbour_search.last == "reprojected"
-        assert dr.width(i.states[restir_di.STORE].prev.valid) > RES * RES  # the store outgrew one view
+        assert dr.width(i.states[_restir_state.STORE].prev.valid) > RES * RES  # the store outgrew one view
     for a, b in zip(images[True], images[False]):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from torchir.samplers import ReSTIRSampler
-from torchir.samplers.restir import _PRESETS
+from torchir.integrators.restir_options import PRESETS
 
 def geometry_message(chained: bool | str) -> str:
     edges = {True: "and kept across steps (edge chains), ", False: "afresh each step, ",
@@ -23,7 +23,7 @@ def geometry_message(chained: bool | str) -> str:
             "boundary terms: shadow edges sampled on the moving meshes under area lights " + edges
             + "silhouettes and the shading-horizon bands of smooth meshes without reuse, the rest from "
             "direct_projective; the temporal support test "
-            "uses the current geometry (small bias, spec D7)")
+            "uses the current geometry, not the previous step's (a small bias)")
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +90,7 @@ def test_options_reach_the_integrator(scene):
 
 
 def test_presets(scene):
-    assert _PRESETS == ("restir", "persistent", "b1", "b2", "forward_only")
+    assert tuple(PRESETS) == ("restir", "persistent", "b1", "b2", "forward_only")
     kw = dict(candidates=6, neighbors=3, burn_in=9, temporal=True, spatial=True)
     b1 = ReSTIRSampler(scene, preset="b1")
     assert b1.preset == "b1"
@@ -115,7 +115,7 @@ def test_presets(scene):
     assert (persistent["offset_lifetime"], persistent["multiview"]) == (2048.0, "per_sensor")
     assert _options(ReSTIRSampler(scene, preset="persistent", offset_lifetime=float("inf")))["offset_lifetime"] == float("inf")
     assert ReSTIRSampler(scene, m_cap=50).integrator.chain_cap == 50.0  # an explicit cap bounds both
-    for preset in _PRESETS:
+    for preset in PRESETS:
         assert ReSTIRSampler(scene, preset=preset).preset == preset
 
 

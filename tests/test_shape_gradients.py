@@ -155,14 +155,14 @@ def test_shadow_edges_fall_back_to_mitsuba_where_they_do_not_apply():
 def test_shadow_edges_are_left_to_mitsuba_when_a_transform_moves_too():
     import drjit as dr
 
-    from torchir.integrators.restir_di import _differentiated_meshes
+    from torchir.integrators._restir_boundary import differentiated_meshes
 
     scene = torchir.Scene.builtin("occluded_lights", resolution=8).mi_scene
     v, t = mi.Float(1.0), mi.Float(2.0)
     dr.enable_grad(v, t)
-    assert [m.id() for m in _differentiated_meshes(scene, {"blocker.vertex_positions": v})] == ["blocker"]
-    assert _differentiated_meshes(scene, {"blocker.vertex_positions": v, "floor.to_world": t}) == []
-    assert _differentiated_meshes(scene, {"blocker.vertex_positions": mi.Float(1.0)}) == []  # no gradient asked
+    assert [m.id() for m in differentiated_meshes(scene, {"blocker.vertex_positions": v})] == ["blocker"]
+    assert differentiated_meshes(scene, {"blocker.vertex_positions": v, "floor.to_world": t}) == []
+    assert differentiated_meshes(scene, {"blocker.vertex_positions": mi.Float(1.0)}) == []  # no gradient asked
 
 
 def test_edge_guide_keeps_every_pair_and_mixes_by_length():
@@ -349,7 +349,8 @@ def test_auto_edge_strategy_chains_by_length_only_where_the_samples_cannot_cover
     """``edge_strategy``: fresh guided samples while the (edge, light) pairs are at most 4 per
     sample, chains by length beyond; explicit settings win; no chains without temporal reuse or
     in forward-only mode."""
-    from torchir.integrators.restir_di import EDGE_PAIRS_PER_SAMPLE, ReSTIRDirectIntegrator
+    from torchir.integrators._restir_boundary import EDGE_PAIRS_PER_SAMPLE
+    from torchir.integrators.restir_di import ReSTIRDirectIntegrator
     from torchir.scenes import occluded_lights
 
     def blocker(**options):

@@ -1,4 +1,4 @@
-"""Exact k-nearest-neighbour search within a radius, for ReSTIR reservoir reuse (paper 004).
+"""Exact k-nearest-neighbour search within a radius, for ReSTIR reservoir reuse (Wang et al. 2023).
 
 Two back-ends that return the *same* neighbours (ascending distance, ties by index):
 
@@ -27,6 +27,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..backend import aligned_host_array
+from .restir_options import NN_BACKENDS
 
 __all__ = ["knn", "knn_kdtree", "knn_grid", "knn_screen", "have_scipy", "NeighbourSearch", "ScreenLayout"]
 
@@ -349,7 +350,7 @@ class NeighbourSearch:
     kd-tree is not a candidate.
     """
 
-    BACKENDS = ("kdtree", "grid", "screen")
+    BACKENDS = tuple(b for b in NN_BACKENDS if b != "auto")
 
     def __init__(self, backend: str = "auto", timed: int = 3) -> None:
         if backend not in ("auto", *self.BACKENDS):

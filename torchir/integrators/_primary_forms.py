@@ -1,4 +1,4 @@
-"""Derivative images of the camera-ray term in two primary-vertex forms (paper 004 §6).
+"""Derivative images of the camera-ray term in two primary-vertex forms (Wang et al. 2023, §6).
 
 A pixel is ``I_p = ∫_P L(s) ds`` over its unit square ``P`` (box filter, pixel units). For a
 parameter ``θ`` that moves geometry, ``dI_p/dθ`` has two estimators of the camera-ray term:
@@ -14,13 +14,13 @@ The material form's pixel-boundary term carries the flux of ``L`` through opposi
 pixel: large, and nearly cancelling wherever ``L`` is smooth. Pixel-level antithetic sampling
 (Yu et al. 2022) draws each point with its reflection about the pixel centre and the same
 random numbers, so the two fluxes cancel in each sample; with ReSTIR the reflected points must
-also combine with the same neighbouring reservoirs (paper 004 §6, Eqs. 28-29), else reuse
+also combine with the same neighbouring reservoirs (Wang et al. 2023, §6, Eqs. 28-29), else reuse
 decorrelates them. The attached form has no such term, hence nothing to cancel.
 
 The forms agree in expectation wherever a pixel holds no visibility boundary; silhouettes and
 shadow edges are separate terms (``direct_projective``, :mod:`._shadow_edges`), not estimated
 here. Light samples come from the ReSTIR integrator's own RIS and combination; ``W`` and the
-chosen sample are constants (R18), as in its backward pass; ``θ`` is differentiated in
+chosen sample are constants, as in its backward pass; ``θ`` is differentiated in
 forward mode.
 """
 from __future__ import annotations
@@ -35,6 +35,7 @@ import numpy as np
 
 from ._film import develop
 from ._light import FORWARD_FLAGS, eval_target, fresh_reservoirs
+from ._restir_pass import combine, normal_test, streaming_ris
 
 __all__ = ["FORMS", "derivative_image", "pinhole", "screen_projection"]
 
@@ -219,7 +220,7 @@ class _Member:
             return self.hit.compute_surface_interaction(self.ray, flags, self.r.valid)
 
     def contribution(self, si: mi.SurfaceInteraction3f) -> mi.Color3f:
-        """``Le + f(y) W`` at ``si``, with the sample and ``W`` held constant (R18)."""
+        """``Le + f(y) W`` at ``si``, with the sample and ``W`` held constant."""
         with dr.resume_grad():
             f, _ = eval_target(self.scene, si, self.r.y, self.r.valid & (self.r.W > 0), visibility=False)
             return si.emitter(self.scene).eval(si, self.r.valid) + f * self.r.W
@@ -233,7 +234,7 @@ def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, 
     Members whose index is in ``seen_from_above`` are shaded as if seen along the shading normal
     (``si.wi = (0, 0, 1)``; for a silhouette's inside, see :mod:`._silhouettes`) where the camera
     sees the front of the face (a one-sided material's back, seen past an open border, stays black). ``candidates``:
-    RIS candidates per point (default the integrator's); ``unroll``: see ``_streaming_ris``."""
+    RIS candidates per point (default the integrator's); ``unroll``: see :func:`._restir_pass.streaming_ris`."""
     w, h = (int(v) for v in sensor_obj.film().crop_size())
     n = dr.width(screen_points[0].x)
     members = []
@@ -248,7 +249,8 @@ def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, 
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(dr.opaque(mi.UInt32, light_seed), n)  # the same numbers for every member
             m_count = integrator.candidates if candidates is None else candidates
-            y, f, phat, w_sum, _ = integrator._streaming_ris(scene, si, sampler, valid, n, False, m_count, unroll)
+            y, f, phat, w_sum, _ = streaming_ris(scene, si, sampler, valid, n, m_count, shadowed=integrator.shadowed,
+                                                 unroll=unroll)
             r = fresh_reservoirs(ray, hit, si, valid, y, w_sum, phat, m_count)
             members.append(_Member(scene, ray, hit, si, sampler, r, f, phat))
         if prev is not None and integrator.reuse:
@@ -262,6 +264,7 @@ def _shade(integrator, scene, sensor_obj, screen_points, light_seed, pick_seed, 
                     ok = [dr.select(pick == t, a, b) for a, b in zip(found[t][1], ok)]
                 found = [(nbr, ok)] * len(members)
             for m, (nbr, ok) in zip(members, found):
-                ok = integrator.normal_test(prev, nbr, [o & m.r.valid for o in ok], m.r.n)  # at each member's own point
-                m.r, m.f, m.phat, _ = integrator._combine(scene, m.sampler, m.si, m.r, m.f, m.phat, prev, nbr, ok, integrator.m_cap)
+                ok = normal_test(prev, nbr, [o & m.r.valid for o in ok], m.r.n, integrator.normal_threshold)  # at each member's own point
+                m.r, m.f, m.phat, _ = combine(scene, m.sampler, m.si, m.r, m.f, m.phat, prev, nbr, ok, integrator.m_cap,
+                                              shadowed=integrator.shadowed)
     return members

@@ -11,7 +11,7 @@ over what the configuration sets::
     ReSTIROptions.reuse_for_image_only()             # reuse for the image, plain RIS for the gradient
     opts.replace(candidates=4)                       # a validated copy with changes
 
-What each option does is in the table of :mod:`torchir.integrators.restir_di`.
+What each option does is in the class's docstring below.
 """
 from __future__ import annotations
 
@@ -21,10 +21,11 @@ import numbers
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-__all__ = ["ReSTIROptions", "PRESETS", "PERSISTENT_LIFETIME"]
+__all__ = ["ReSTIROptions", "PRESETS", "PERSISTENT_LIFETIME", "NN_BACKENDS"]
 
 PERSISTENT_LIFETIME = 2048.0  # persistent(): mean steps a camera sample keeps its position in the pixel
 AUTO = "auto"
+NN_BACKENDS = (AUTO, "kdtree", "grid", "screen")  # neighbour searches (integrators._knn.NeighbourSearch)
 
 
 def _int(name: str, value: Any, lo: int) -> int:
@@ -52,19 +53,23 @@ def _flag(name: str, value: Any) -> bool:
 
 @dataclass(frozen=True)
 class ReSTIROptions:
-    """Settings of ReSTIR direct illumination (validated when constructed; immutable).
+    """Settings of ReSTIR direct illumination (validated when constructed; immutable): light
+    resampling first, from ``candidates`` to ``light_guide``, then the boundary terms of shape
+    gradients, from ``shadow_edge_sampling`` on.
 
-    Light resampling:
+    Attributes:
         candidates: M, light candidates per camera sample (streaming RIS).
         neighbors: k, reservoirs of the previous step combined per camera sample (8 and 16
             candidates: the lowest error x time of k in 2-16, M in 8-16 at 128², docs/restir-measurements.md).
         radius: neighbour search radius in world units (``None``: 2 pixel footprints).
         m_cap: cap on M (``None``: 2 * candidates for searched neighbours, 64 * candidates
-            for a lane's own chain; spec D2's 20 * candidates measured worse with searched
-            neighbours: a moved shading point can hide a long memory's sample, see
-            ``integrators/restir_di.py`` and ``scripts/sweep_restir.py``).
-        temporal, spatial: reuse switches (both: the paper's spatiotemporal reuse of the
-            previous step; neither: plain RIS).
+            for a lane's own chain). Any move of a shading point lets a long memory count in
+            ``Z`` where its sample is hidden from the new point, so searched neighbours keep a
+            short one; a chain at a fixed shading point has no such events (measurements:
+            docs/restir-measurements.md, "M caps").
+        temporal: reuse of the previous step's reservoirs (with ``spatial``: the paper's
+            spatiotemporal reuse; neither: plain RIS).
+        spatial: reuse of the same step's reservoirs nearby.
         burn_in: forward-only reuse passes before a sensor's first step (kept offsets without
             spatial reuse, e.g. ``persistent()``: one pass over ``burn_in x candidates``).
         grad_paths: ``"decorrelated"`` (the default: a second resampling pass with
@@ -111,8 +116,6 @@ class ReSTIROptions:
         light_guide: with kept offsets and temporal reuse alone (``persistent()``), the
             share of each lane's light candidates drawn from what it learned of where its light
             comes from (0: off); unbiased (RIS weighs by the mixture's density).
-
-    Shape gradients (boundary terms):
         shadow_edge_sampling: sample shadow edges on the moving meshes (False: Mitsuba's
             ``direct_projective`` term).
         edge_guiding: draw (edge, light) pairs by what earlier steps found (True / False / "auto").
@@ -164,7 +167,6 @@ class ReSTIROptions:
     shading_bands: bool | str = AUTO
     moving_geometry_m_cap: int = 4
 
-    NN_BACKENDS: ClassVar[tuple[str, ...]] = (AUTO, "kdtree", "grid", "screen")
     MULTIVIEW: ClassVar[tuple[str, ...]] = (AUTO, "per_sensor", "carry_over")
 
     def __post_init__(self) -> None:
@@ -184,7 +186,7 @@ class ReSTIROptions:
         if self.freeze is not None:
             set_("freeze", _flag("freeze", self.freeze))
         _choice("grad_paths", self.grad_paths, ("shared", "decorrelated"))
-        _choice("nn_backend", self.nn_backend, self.NN_BACKENDS)
+        _choice("nn_backend", self.nn_backend, NN_BACKENDS)
         _choice("target", self.target, ("shadowed", "unshadowed"))
         _choice("multiview", self.multiview, self.MULTIVIEW)
         for name in ("edge_guiding", "edge_temporal", "silhouette_sampling", "shading_bands"):
