@@ -50,7 +50,7 @@ def _bench(args: argparse.Namespace) -> int:
 
     from .bench import run_suites
 
-    runs = run_suites(args.suites, args.quick, Path(args.out))
+    runs = run_suites(args.suites, args.quick, Path(args.out), args.suite_options)
     return 0 if all(r["exit_code"] == 0 for r in runs) else 1
 
 
@@ -69,7 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     sub.add_parser("info", help="backend, versions and built-in scenes").set_defaults(run=_info)
     from .bench import SUITES
 
-    bench = sub.add_parser("bench", help="speed/accuracy benchmarks of each technique and a report (Markdown + HTML)")
+    bench = sub.add_parser("bench", help="speed/accuracy benchmarks of each technique and a report (Markdown + HTML)",
+                           epilog="Other options go to the one suite named (torchir bench jpeg --resolution 256; "
+                                  "python -m torchir.bench.<suite> --help lists them).")
     bench.add_argument("suites", nargs="+", choices=[*SUITES, "all"], metavar="suite", help=f"one or more of: {', '.join(SUITES)}, all")
     bench.add_argument("--quick", action="store_true", help="a few-minute run of each suite instead of the full one")
     bench.add_argument("--out", default="results/bench", help="report folder (default results/bench)")
@@ -82,7 +84,13 @@ def main(argv: list[str] | None = None) -> int:
     export.set_defaults(run=_export)
     for command in LIGHTNING_COMMANDS:
         sub.add_parser(command, help=f"Lightning {command} of an inverse-rendering run (--config run.yaml)", add_help=False)
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra and args.command != "bench":
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if args.command == "bench":  # the rest goes to the suite: torchir bench jpeg --resolution 256
+        if extra and len(args.suites) != 1:
+            parser.error(f"suite options ({' '.join(extra)}) need exactly one suite, got {' '.join(args.suites)}")
+        args.suite_options = extra
     try:
         return args.run(args)
     except (RuntimeError, FileNotFoundError, ValueError) as error:  # e.g. LLVMError: a message, not a traceback

@@ -53,8 +53,9 @@ def environment() -> dict:
     }
 
 
-def run_suites(suites: Sequence[str], quick: bool, out: Path) -> list[dict]:
-    """Run ``suites`` (``"all"`` expands to every suite) and write the report into ``out``."""
+def run_suites(suites: Sequence[str], quick: bool, out: Path, options: Sequence[str] = ()) -> list[dict]:
+    """Run ``suites`` (``"all"`` expands to every suite) and write the report into ``out``;
+    ``options`` are passed on to each suite's command line."""
     from .report import write_report
 
     names = list(ALL) if list(suites) == ["all"] else list(suites)
@@ -65,7 +66,7 @@ def run_suites(suites: Sequence[str], quick: bool, out: Path) -> list[dict]:
     runs = []
     for name in names:
         folder = out / name
-        command = [sys.executable, "-m", SUITES[name], "--out", str(folder), *(["--quick"] if quick else [])]
+        command = [sys.executable, "-m", SUITES[name], "--out", str(folder), *(["--quick"] if quick else []), *options]
         print(f"[torchir bench] {name}: {' '.join(command)}", flush=True)
         started = time.perf_counter()
         folder.mkdir(parents=True, exist_ok=True)

@@ -12,8 +12,12 @@ for several render seeds, with the codec's full correction, its chroma filter on
 Reported per quality and correction: the paired offset from the PNG's answer (mean over seeds,
 percent) and the JPEG's mean minus the PNG's mean in PNG seed standard deviations.
 
+The EXR of the same photo is fitted too: its offset from the PNG is what 8-bit quantisation
+alone moves the answer, the scale a JPEG's offset is measured against beside the seed noise.
+
 Usage:
     torchir bench jpeg [--quick]        (default: 64², 400 steps, 3 seeds; --quick: 32², 120 steps, 2 seeds)
+    torchir bench jpeg --resolution 256 --photo-spp 1024 --corrections codec   (photos as users take them)
 
 Writes ``<out>/results.json``, ``<out>/summary.md`` and ``<out>/jpeg_offsets.png``.
 """
@@ -44,10 +48,11 @@ def write_photos(radiance: torch.Tensor, folder: Path, qualities: Sequence[int])
     from torchir.imageio import to_srgb, write_image
 
     write_image(folder / "photo.png", radiance)
+    write_image(folder / "photo.exr", radiance)
     codes = np.rint(255 * to_srgb(radiance.clamp(0, 1)).permute(1, 2, 0).double().numpy()).astype(np.uint8)
     bitmap = mi.Bitmap(np.ascontiguousarray(codes), mi.Bitmap.PixelFormat.RGB)
     bitmap.set_srgb_gamma(True)
-    out = {"png": folder / "photo.png"}
+    out = {"png": folder / "photo.png", "exr": folder / "photo.exr"}
     for quality in qualities:
         out[f"q{quality}"] = folder / f"q{quality}.jpg"
         bitmap.write(str(out[f"q{quality}"]), quality=quality)
@@ -89,8 +94,9 @@ def fit(module: Any, target: Path, steps: int, correction: str) -> torch.Tensor:
     return torch.stack(trail).mean(0)
 
 
-def run(resolution: int, steps: int, seeds: Sequence[int], qualities: Sequence[int], photo_spp: int) -> dict[str, Any]:
-    """Every seed's fitted radiance from the PNG and from each JPEG under each correction."""
+def run(resolution: int, steps: int, seeds: Sequence[int], qualities: Sequence[int], photo_spp: int,
+        corrections: Sequence[str] = CORRECTIONS) -> dict[str, Any]:
+    """Every seed's fitted radiance from the PNG, the EXR and each JPEG under each of ``corrections``."""
     import torchir
     from torchir.training import InverseRenderingModule
 
@@ -105,8 +111,9 @@ def run(resolution: int, steps: int, seeds: Sequence[int], qualities: Sequence[i
         if n == 0:
             photos = write_photos(torchir.functions.render(module.scene, {}, spp=photo_spp, seed=2), folder, qualities)
         answers.setdefault("png", []).append(fit(module, photos["png"], steps, "none").tolist())
+        answers.setdefault("exr", []).append(fit(module, photos["exr"], steps, "none").tolist())
         for quality in qualities:
-            for correction in CORRECTIONS:
+            for correction in corrections:
                 answer = fit(module, photos[f"q{quality}"], steps, correction)
                 answers.setdefault(f"q{quality} {correction}", []).append(answer.tolist())
         print(f"seed {seed} done ({n + 1}/{len(seeds)}, {time.perf_counter() - started:.0f} s)", flush=True)
@@ -134,7 +141,7 @@ def table(results: dict[str, Any]) -> str:
     lines = [f"PNG answer's seed spread (R, G, B): {', '.join(f'{s:.2f} %' for s in spread.tolist())}", "",
              "| JPEG | correction | offset from PNG (R, G, B) | in PNG seed sd (R, G, B) |", "|---|---|---|---|"]
     for name, row in offsets(results["answers"]).items():
-        quality, correction = name.split()
+        quality, correction = name.split() if " " in name else (name, "(8-bit quantisation)")
         lines.append(f"| {quality} | {correction} | {', '.join(f'{p:+.2f} %' for p in row['percent'])} | "
                      f"{', '.join(f'{z:+.1f}' for z in row['in_seed_sd'])} |")
     return "\n".join(lines) + "\n"
@@ -145,18 +152,23 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", type=Path, default=Path("bench_results/jpeg"))
     parser.add_argument("--seeds", type=int, default=None)
+    parser.add_argument("--resolution", type=int, default=None, help="image side (default 64; --quick 32)")
+    parser.add_argument("--steps", type=int, default=None, help="Adam steps a fit (default 400; --quick 120)")
+    parser.add_argument("--photo-spp", type=int, default=64, help="samples per pixel of the photo")
+    parser.add_argument("--corrections", nargs="+", choices=CORRECTIONS, default=list(CORRECTIONS))
     args = parser.parse_args(argv)
     resolution, steps, seeds = (32, 120, 2) if args.quick else (64, 400, 3)
-    seeds = args.seeds or seeds
+    resolution, steps, seeds = args.resolution or resolution, args.steps or steps, args.seeds or seeds
     args.out.mkdir(parents=True, exist_ok=True)
-    results = run(resolution, steps, range(seeds), QUALITIES, photo_spp=64)
-    results["settings"] = {"resolution": resolution, "steps": steps, "seeds": seeds, "photo_spp": 64, "spp": 8}
+    results = run(resolution, steps, range(seeds), QUALITIES, photo_spp=args.photo_spp, corrections=args.corrections)
+    results["settings"] = {"resolution": resolution, "steps": steps, "seeds": seeds, "photo_spp": args.photo_spp, "spp": 8,
+                           "corrections": list(args.corrections)}
     results["environment"] = environment()
     summary = f"## JPEG targets: the lamp's colour against the PNG's ({resolution}², {steps} steps, {seeds} seeds)\n\n" + table(results)
     rows = offsets(results["answers"])
 
     def draw(ax) -> None:
-        for correction, marker in zip(CORRECTIONS, "os^"):
+        for correction, marker in zip(args.corrections, "os^"):
             for channel, colour in enumerate("rgb"):
                 ys = [abs(rows[f"q{q} {correction}"]["in_seed_sd"][channel]) for q in QUALITIES]
                 ax.plot(QUALITIES, ys, marker=marker, color=colour, label=f"{correction} ({'RGB'[channel]})",

@@ -41,7 +41,7 @@ from .data import ViewDataModule
 from .module import InverseRenderingModule, NonFiniteLossError
 from .parameters import ParameterConfig, is_image_file
 
-__all__ = ["TorchirCLI", "main", "split_parameter_sets"]
+__all__ = ["TorchirCLI", "main", "quiet_lightning", "split_parameter_sets"]
 
 _FIELDS = tuple(ParameterConfig.__dataclass_fields__)
 
@@ -162,7 +162,7 @@ QUIET_LOGGERS = ("lightning.pytorch", "lightning.fabric", "pytorch_lightning", "
 
 
 @contextlib.contextmanager
-def _quiet_lightning():
+def quiet_lightning():
     """Lightning's loggers at WARNING for the run (their levels restored after it)."""
     loggers = [logging.getLogger(name) for name in QUIET_LOGGERS]
     levels = [logger.level for logger in loggers]
@@ -287,7 +287,7 @@ def main(args: list[str] | None = None) -> int:
     if args[:1] in (["fit"], ["validate"]) and any(a in ("-h", "--help") for a in args[1:]):
         print(TORCHIR_HELP)
     try:
-        with _quiet_lightning():
+        with quiet_lightning():
             _run_cli(args)
     except (NonFiniteLossError, FileNotFoundError, KeyError, ValueError, TypeError, AttributeError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
