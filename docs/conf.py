@@ -16,6 +16,7 @@ exclude_patterns = ["_build"]
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
 napoleon_google_docstring = True
+napoleon_use_ivar = True  # "Attributes:" as fields: a NamedTuple's fields are not documented twice
 myst_heading_anchors = 3
 html_theme = "alabaster"
 autodoc_inherit_docstrings = False  # Lightning's own docstrings are not ours to render

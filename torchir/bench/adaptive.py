@@ -1,5 +1,8 @@
 #!/usr/bin/env python
-"""Image-space adaptive pixel sampling (paper 000) against its baselines, at equal pixel budget.
+"""Image-space adaptive pixel sampling against its baselines, at equal pixel budget.
+
+The technique is that of *Image-space Adaptive Sampling for Fast Inverse Rendering* (SIGGRAPH 2025),
+"the paper" below.
 
 Three pixel samplers from :mod:`torchir.samplers` drive the same inverse-rendering estimator:
 
@@ -9,12 +12,12 @@ Three pixel samplers from :mod:`torchir.samplers` drive the same inverse-renderi
 * ``full`` (reference only): the full-image gradient, every pixel at 1 spp.
 
 The estimator is the trainer's (:func:`torchir.samplers.sampled_loss`): draw ``N`` pixels, render them
-with :func:`torchir.functions.render_pixels` (1 primal path, 1 independent replay path, spec
-E3/E16), loss ``(weight * L2Loss.pixel_terms(radiance, target, m)).sum()``, backward. The loop is
-plain torch (Adam, projection to [0, 1]), not the Lightning trainer. Stage 1 runs when
+with :func:`torchir.functions.render_pixels` (1 primal path and 1 independent replay path, so the
+paper's Eq. 4 stays unbiased), loss ``(weight * L2Loss.pixel_terms(radiance, target, m)).sum()``,
+backward. The loop is plain torch (Adam, projection to [0, 1]), not the Lightning trainer. Stage 1 runs when
 ``sampler.due(step, params)`` says so, and its time and paths count towards the method.
 
-Scene (spec §6.3): ``Scene.builtin("cbox", canvas=8)``, prb max_depth 4, an 8x8 textured canvas on
+Scene: ``Scene.builtin("cbox", canvas=8)``, prb max_depth 4, an 8x8 textured canvas on
 the back wall (~3% of the image). Optimised: ``canvas.bsdf.reflectance.data`` (init 0.5) and
 ``red.reflectance.value`` (init 0.3 grey); truth = the loaded values; L2 loss against a
 high-spp target cached in ``--out``.

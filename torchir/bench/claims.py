@@ -1,6 +1,6 @@
 """The papers' claims beside torchir's measurements, read from the suites' ``results.json``.
 
-Each claim names the paper's number (or the issue's goal where the paper gives none), how to
+Each claim names the paper's number (or the project's goal where the paper gives none), how to
 read torchir's figure from a suite's results, and the goal; the report shows them in one table
 so a reader can compare them without opening every suite.
 """
@@ -48,7 +48,7 @@ CLAIMS: list[Claim] = [
     Claim("loi", "B3 known-colour disks: LOI - GP mean PSNR (dB)", "Table 1: LOI best", ">= +2 dB",
           lambda r: r["summary"]["B3"][next(iter(r["summary"]["B3"]))]["loi"]["mean_psnr"] - r["summary"]["B3"][next(iter(r["summary"]["B3"]))]["gp"]["mean_psnr"],
           lambda v: v >= 2, unit=" dB"),
-    Claim("loi", "LOI forward+backward at 256² / one 4-spp render step", "-", "<= 3x (issue 15)",
+    Claim("loi", "LOI forward+backward at 256² / one 4-spp render step", "-", "<= 3x (project goal)",
           lambda r: r["cost"]["ratio_to_render"]["loi"], lambda v: v <= 3),
     Claim("loi", "LOI (default) gradient error vs exact LOI, 256² renders (largest of 3)", "-", "<= 1%",
           lambda r: 100 * r["cost"]["error_vs_exact_loi"]["loi"]["gradient_relative_error"], lambda v: v <= 1, unit="%"),

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Techniques combined (issue 8, item 2): short runs of the real trainer, alone and together.
+"""Techniques combined: short runs of the real trainer, alone and together.
 
 Every configuration is a real training run: :class:`~torchir.training.InverseRenderingModule` +
 :class:`~torchir.training.ViewDataModule` + ``lightning.pytorch.Trainer`` (no logger, no
@@ -8,14 +8,15 @@ the configurations are interleaved within each seed (machine load drifts over th
 between configurations).
 
 * ``oxalis_lite`` (the many-light canvas, ``configs/restir*.yaml``): recover the albedo texture
-  with plain rendering, ReSTIR alone (paper 004), the target-aware denoiser alone (paper 002) and
+  with plain rendering, ReSTIR alone (Wang et al. 2023), the target-aware denoiser alone (Gu et al. 2024) and
   ReSTIR + target-aware denoiser (``configs/combined_restir_target_aware.yaml``; the denoiser
   paper reports its combination with a ReSTIR variant beating either alone). Its target is
   rendered at 4096 spp (quick: 256): at 256 spp the target's own noise set every run's final
   error (measured at 256², 600 steps: plain 0.0995, the denoiser back at 0.204 from 0.202).
 * ``cbox`` with an 8x8 canvas texture (``configs/sampling_*.yaml``): the canvas texture and the
   red wall from a plain full render, uniform and adaptive pixel sampling (5% of the pixels per
-  step, paper 000) and a full render + target-aware denoiser.
+  step; *Image-space Adaptive Sampling for Fast Inverse Rendering*, SIGGRAPH 2025) and a full
+  render + target-aware denoiser.
 * Combinations the pieces cannot do are attempted and listed with the error they raise:
   adaptive pixels + denoiser (a denoiser needs full images), adaptive pixels + LOI loss (a
   pixel-coupling loss) and LOI + ReSTIR on the moving-light problem ``glossy_highlight``

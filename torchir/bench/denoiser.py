@@ -1,5 +1,8 @@
 #!/usr/bin/env python
-"""Denoisers in the optimisation loop (paper 002): none vs cross-bilateral vs target-aware.
+"""Denoisers in the optimisation loop (Gu et al. 2024): none vs cross-bilateral vs target-aware.
+
+The target-aware denoiser is that of Gu et al. 2024, "Target-Aware Image Denoising for Inverse Monte Carlo
+Rendering" (SIGGRAPH 2024), "the paper" below.
 
 Two parts, one command:
 

@@ -1,7 +1,8 @@
 #!/usr/bin/env python
-"""LOI loss (paper 003) against L2 and multi-scale baselines on motion-type inverse problems.
+"""LOI loss (Mehta et al. 2025) against L2 and multi-scale baselines on motion-type inverse problems.
 
-Spec ``loi-loss.md`` section 6.2. Every loop is plain torch (Adam), not the Lightning trainer:
+The loss is that of Mehta et al. 2025, "Locally Orderless Images for Optimization in Differentiable
+Rendering" (CVPR 2025), "the paper" below. Every loop is plain torch (Adam), not the Lightning trainer:
 
 * **B1 glossy highlight** (paper's Envlight / Fig. 1 analogue): recover a point light's
   azimuth from the highlight on a shiny sphere (built-in scene ``glossy_highlight``, rendered
@@ -19,7 +20,7 @@ Spec ``loi-loss.md`` section 6.2. Every loop is plain torch (Adam), not the Ligh
   (forward + backward, 4 spp) of ``glossy_highlight`` at 256x256, interleaved, as ratios.
 
 Methods: ``l2`` (pixel-wise; B1 on raw HDR), ``gp`` (Gaussian pyramid, MSE per level),
-``ms_l2`` (MSE of blurred images, sigma in {0, 1, 5, 15, 45} px: the spec's "GP" runs),
+``ms_l2`` (MSE of blurred images, sigma in {0, 1, 5, 15, 45} px: the paper's Gaussian-pyramid "GP" baseline),
 ``sigma_w1`` (LOI with alpha = 0: the sigma-space-only ablation = multi-scale L1),
 ``loi`` (the default: large-alpha terms on cells of 0.15 alpha), ``loi_exact`` (every pixel)
 and ``loi_cells`` (LOI with ``cell_fraction=0.5``: large-alpha terms on cell means, faster).

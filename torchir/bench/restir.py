@@ -1,19 +1,21 @@
 #!/usr/bin/env python
-"""ReSTIR for inverse direct illumination (paper 004) against plain Mitsuba, B.1 and B.2, with the camera-sampling floor.
+"""ReSTIR for inverse direct illumination (Wang et al. 2023) vs Mitsuba, B.1 and B.2, with the camera-sampling floor.
 
 Methods (every one recovers the scene's albedo texture, ``torchir.scenes.get(name).parameters[0]``):
 
 * **direct**: the scene's own integrator (``prb``, ``max_depth`` 2: plain Mitsuba direct
   illumination, what a user runs without ReSTIR): ``render(scene, params)`` without ``sampler=``;
-* **B.1**: one light sample per camera ray, no reuse (``ReSTIRSampler(preset="b1")``);
-* **B.2**: streaming RIS over ``--candidates`` shadowed candidates, no reuse (``preset="b2"``);
+* **B.1** (the paper's path-tracing baseline): one light sample per camera ray, no reuse
+  (``ReSTIRSampler(preset="b1")``);
+* **B.2** (the paper's RIS baseline): streaming RIS over ``--candidates`` shadowed candidates, no
+  reuse (``preset="b2"``);
 * **ReSTIR (shadowed)** / **ReSTIR (unshadowed)**: RIS + spatiotemporal reuse of the previous
   step's reservoirs, ``target="shadowed"`` (p̂ includes visibility, the paper) or
   ``"unshadowed"`` (one shadow ray for the chosen sample);
 * **ReSTIR (persistent)**: ``preset="persistent"``: every camera sample keeps its offset in the
   pixel (redrawn every 2048 steps on average) and resamples with its own previous reservoir
   (temporal reuse at the same shading point, M capped at 64 x candidates), no spatial reuse;
-* **floor**: the oracle of spec §5.1, RIS over ``--oracle-candidates`` (256) shadowed
+* **floor**: an oracle, RIS over ``--oracle-candidates`` (256) shadowed
   candidates, no reuse, at the same seeds and spp as the method: the camera rays of a
   ``ReSTIRSampler`` render depend only on the seed, so the oracle sees the same camera rays
   and almost no light noise. Its error is the *camera-sampling floor*: with ``e`` a method's
@@ -23,7 +25,7 @@ Methods (every one recovers the scene's albedo texture, ``torchir.scenes.get(nam
 
 Experiments, per scene (``--scenes``):
 
-* **Gradient error** (spec T-B1, D9): the adjoint of the L2 loss at the grey (0.5) texture, held
+* **Gradient error**: the adjoint of the L2 loss at the grey (0.5) texture, held
   fixed (the error is the estimator's, not the loss's); ``relerr = ||g − g_ref|| / ||g_ref||``
   with ``g_ref`` from ``prb`` at ``--ref-spp`` (four independent batches: their spread gives the
   reference's own relative standard error, printed; it adds to every error in quadrature).
@@ -40,20 +42,20 @@ Experiments, per scene (``--scenes``):
   table shows the seconds per step of the ReSTIR runs as they took them and the budget for
   the baselines. The runs of each group step in lockstep (interleaved), so
   load drift hits every method alike.
-* **Reconstruction at equal wall time, through the trainer** (spec T-B2): a real
+* **Reconstruction at equal wall time, through the trainer**: a real
   ``InverseRenderingModule`` + ``ViewDataModule`` + ``lightning.pytorch.Trainer`` run per method
   (Adam, ``--lr``, L2 loss, grey init, bounds [1e-3, 1], every method at ``--spp``). The slower
   ReSTIR variant trains ``--recon-steps`` steps (its burn-in falls in its first step, so it is
   charged); every other method trains for that wall time (Lightning's ``max_time``): cheaper
   methods take more steps. Texture RMSE against the ground truth after the budget. Once per
-  ``--grad-paths`` mode of the samplers: ``decorrelated`` (the default since issue 39: the
+  ``--grad-paths`` mode of the samplers: ``decorrelated`` (the default: the
   gradient's light samples come from a second pass on ``seed_grad``) and ``shared`` (the paper:
   the gradient re-uses the image's paths, which correlates them, a bias of the L2 loss that
-  grows with the image noise, spec D5); ``direct`` (prb) is always decorrelated. The first
+  grows with the image noise); ``direct`` (prb) is always decorrelated. The first
   mode also sets the samplers' paths in the gradient-error runs (at a fixed adjoint either is
   unbiased, but decorrelated paths cost a second resampling pass a step: the equal-time
   budget and every sampler's step time include it).
-* **Cost per stage** (spec T-B4): seconds per step of each method at equal samples, the
+* **Cost per stage**: seconds per step of each method at equal samples, the
   ReSTIR integrator's stage timers (RIS, NN search, combination, develop, backward; ``other``:
   the rest, e.g. the torch/Dr.Jit boundary; a pass replayed by ``dr.freeze`` has a single
   ``pass`` timer, so B.2 and ReSTIR are then also timed a few steps with ``freeze=False``),
@@ -63,7 +65,7 @@ Experiments, per scene (``--scenes``):
 Usage (``torchir bench restir [--quick]`` runs the same in a fresh process):
     python -m torchir.bench.restir --quick     # 32², first default scene, burn-in 8, 8 gradient / 10 training steps (< 1 min)
     python -m torchir.bench.restir             # 128², default scenes, 32 gradient steps, 150 training steps (~6-8 min)
-    python -m torchir.bench.restir --grad-paths shared   # the paper's shared paths (the figures before issue 39)
+    python -m torchir.bench.restir --grad-paths shared   # the paper's shared paths
     python -m torchir.bench.restir --scenes oxalis_lite --resolution 64 --spp 2
 
 Writes ``<out>/results.json``, ``<out>/tables.md`` (= ``summary.md``, which the bench report
@@ -132,7 +134,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--spp", type=int, default=1, help="samples per pixel of ReSTIR and of every method at equal samples")
     p.add_argument("--candidates", type=int, default=16, help="M of B.2 and ReSTIR (the sampler default)")
     p.add_argument("--oracle-candidates", default="256,1024",
-                   help="two candidate counts M1 < M2 of the floor oracle (RIS, no reuse, >= 256, spec §5.1): the floor is "
+                   help="two candidate counts M1 < M2 of the floor oracle (RIS, no reuse, >= 256): the floor is "
                         "extrapolated to M -> infinity from e² = floor² + L/M (one count: that oracle's error)")
     p.add_argument("--burn-in", type=int, default=None, help="ReSTIR burn-in passes, charged to ReSTIR (default 32, quick 8)")
     p.add_argument("--nn-backend", default="auto", choices=("auto", "kdtree", "grid", "screen"))
@@ -717,7 +719,7 @@ def tables(results: dict[str, Any]) -> str:
          f"for {cfg['recon_steps']} steps (burn-in included) for all; texture RMSE after it, median of {cfg['recon_seeds']} seed(s); "
          f"the samplers' gradient paths: {', '.join(cfg['grad_paths'])} (the main table, gradient error included: "
          f"{cfg['grad_paths'][0]}; shared paths correlate the image and its gradient, a bias of the L2 loss that grows with "
-         "the image noise, spec D5; decorrelated paths cost a second resampling pass a step; direct (prb) always uses "
+         "the image noise; decorrelated paths cost a second resampling pass a step; direct (prb) always uses "
          "decorrelated paths)."),
     ]
     overview = []

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Pixel-level antithetic sampling and ReSTIR (paper 004 §6, Fig. 8 "Pig"), at equal time.
+"""Pixel-level antithetic sampling and ReSTIR (Wang et al. 2023, §6, Fig. 8 "Pig"), at equal time.
 
 ``pig``: a smooth diffuse blob lit by one area light, box filter. The derivative image of its
 vertical displacement, camera-ray term (:mod:`torchir.integrators._primary_forms`), is scored

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""ReSTIR for a pose seen only through its shadow (paper 004, Fig. 10 "Tree"), at equal time.
+"""ReSTIR for a pose seen only through its shadow (Wang et al. 2023, Fig. 10 "Tree"), at equal time.
 
 ``occluded_lights``: the ``blocker`` hangs outside the camera's view and casts a sharp shadow on
 the floor. Its rotation about the vertical axis (:func:`torchir.derived.rigid_transform`) is
@@ -25,7 +25,7 @@ recovered from the image alone, from several starts, with Adam on the L2 loss. M
 The blocker's gradient is entirely a shadow-boundary term, weighted by the loss's adjoint
 ``2 (image - target)``: the samplers estimate it from points on the blocker's edges. Reuse helps
 twice: through the image (a less noisy adjoint, which forward-only shares) and, for ReSTIR alone,
-through edge samples kept across steps (paper 004 Alg. 6 with the whole edge sample in the
+through edge samples kept across steps (Wang et al. 2023, Alg. 6, with the whole edge sample in the
 reservoir). The gradient spread is measured as in a run: the pose alternates between
 ``--spread-angle`` and ``--spread-angle + --spread-move`` (0: one pose, the chains' samples then
 stay on unmoved geometry, an optimistic case for them). Beside the per-step variance it gives

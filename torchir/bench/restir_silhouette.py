@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Primary silhouettes with resampled and reused light samples (paper 004 §5.1, Alg. 5).
+"""Primary silhouettes with resampled and reused light samples (Wang et al. 2023, §5.1, Alg. 5).
 
 The derivative of ``sum(adjoint * image)`` for the ``pig`` blob's vertical displacement,
 primary-silhouette term only, at a fixed adjoint (the L2 loss's, the blob 0.05 above its

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""ReSTIR across views (paper 004, Alg. 8): one carried-over reservoir store against one chain per sensor.
+"""ReSTIR across views (Wang et al. 2023, Alg. 8): one carried-over reservoir store against one chain per sensor.
 
 A multi-view texture problem: ``oxalis_lite`` (a textured canvas, two bright spots, dim and
 hidden lights) seen by ``--views`` cameras on an arc in front of the canvas. Each step renders

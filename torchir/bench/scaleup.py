@@ -1,16 +1,18 @@
 #!/usr/bin/env python
-"""Pixel sampling at the scale users work at (issue 15): 512^2, 256^2 path tracing, 16 views.
+"""Pixel sampling at the scale users work at: 512^2, 256^2 path tracing, 16 views.
 
 Every run is the real trainer (:func:`torchir.bench.combined.run_configuration`:
 ``InverseRenderingModule`` + ``ViewDataModule`` + ``lightning.pytorch.Trainer``), 1 spp, and
 every configuration of a workload trains for the wall time of that workload's full-image run of
 the same seed (equal time; seeds are the outer loop, configurations interleaved within a seed).
 
-Workloads (what the paper's experiments have and the 32^2-128^2 suites lack: a full render per
-step is expensive):
+Workloads (what the experiments of *Image-space Adaptive Sampling for Fast Inverse Rendering*
+(SIGGRAPH 2025, "the paper" below) have and the 32^2-128^2 suites lack: a full render per step is
+expensive):
 
 * ``cbox_512``: Cornell box with an 8x8 canvas texture on the back wall (~3 % of the image) and
-  the red-wall albedo, 512^2, ``prb`` (paper 000's "painting" setting, spec 6.3, at 16x the pixels).
+  the red-wall albedo, 512^2, ``prb`` (the 128^2 setting of ``torchir bench adaptive`` at 16x the
+  pixels).
 * ``textured_wall_256``: a 16x16 texture covering the whole image, lit by bounced light
   (``prb`` max_depth 5, heavy-tailed noise), 256^2: every pixel matters, so this is where pixel
   sampling has the least to gain.

@@ -1,9 +1,10 @@
 #!/usr/bin/env python
-"""Time per training step against the pixel budget (issue 15): what a pixel-sampling step costs.
+"""Time per training step against the pixel budget: what a pixel-sampling step costs.
 
-Pixel sampling (paper 000) exists to make a step cheaper than rendering the whole image; that
-only holds if a step's cost scales with the pixels traced, not with fixed costs (Python, the
-trainer, kernel launches, Stage 1). Every run here is the real trainer
+Pixel sampling (*Image-space Adaptive Sampling for Fast Inverse Rendering*, SIGGRAPH 2025) exists
+to make a step cheaper than rendering the whole image; that only holds if a step's cost scales
+with the pixels traced, not with fixed costs (Python, the trainer, kernel launches, Stage 1).
+Every run here is the real trainer
 (:func:`torchir.bench.combined.run_configuration`: ``InverseRenderingModule`` +
 ``ViewDataModule`` + ``lightning.pytorch.Trainer``) on ``cbox`` with an 8x8 canvas texture,
 1 spp, for the uniform and the adaptive sampler at budgets from 1% to 100% of the pixels, and

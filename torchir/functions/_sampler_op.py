@@ -1,7 +1,7 @@
 """The Dr.Jit op behind ``render(..., sampler=...)``: a render by a sampler's stateful integrator.
 
 :class:`RenderSampler` is all :func:`torchir.functions.render` knows of such a sampler (e.g.
-:class:`torchir.samplers.ReSTIRSampler`, paper 004): the render boundary does not import the
+:class:`torchir.samplers.ReSTIRSampler`, Wang et al. 2023): the render boundary does not import the
 sampler classes. Same binding discipline as every torchir render (:class:`BoundRenderOp`: the
 backward re-binds this render's own values when another render ran in between). The primal
 advances the integrator's state and keeps this step's paths on the op itself, so each backward

@@ -38,7 +38,7 @@ def render_gbuffers(
     No gradients: values are bound detached and Dr.Jit's AD is suspended. Safe next to a
     differentiable :func:`~torchir.functions.render`: called before it, or between it and its
     ``backward()`` (the render's backward re-binds its own values; writing detached values into
-    the scene after a plain ``mi.render`` would break Mitsuba's replay, paper 002 spec §5.5).
+    the scene after a plain ``mi.render`` would break Mitsuba's replay).
     Background pixels are 0 in every channel. Use a box reconstruction filter (the built-in
     scenes do): a wider filter averages normals across pixels.
 

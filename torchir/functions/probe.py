@@ -1,11 +1,13 @@
 """``probe_pixels``: one-path radiance and forward-mode derivatives on low-resolution grids.
 
-Stage 1 of the adaptive pixel sampler (paper 000, Algorithm 1 lines 2-9) needs, per low-res
+Stage 1 of the adaptive pixel sampler (Yan et al. 2025, Alg. 1 lines 2-9) needs, per low-res
 pixel, a few *one-path* estimates of the radiance ``I`` (for the loss adjoint, factor ``p1``)
 and of the directional derivative ``t = sum_k v_k dI/dθ_k`` along a Rademacher tangent ``v``
-(factor ``p2``, spec E12). Camera rays are generated directly on each grid (a low-res pixel
-covers the same film area as the block of full-res pixels under it), so no film resize is
-needed per level, and every level and pass runs in one wavefront.
+(factor ``p2``; this probe replaces the paper's custom squared forward-mode pass: as
+``E[v_k v_l] = δ_kl``, ``E[t²]`` equals the one-path estimate of ``p2``). Camera rays are
+generated directly on each grid (a low-res pixel covers the same film area as the block of
+full-res pixels under it), so no film resize is needed per level, and every level and pass
+runs in one wavefront.
 
 The derivative is a central difference along the tangent with common random numbers (the
 same paths at ``θ + h v`` and ``θ - h v``), not prb's Forward mode: in Mitsuba 3.9 / Dr.Jit 1.5

@@ -80,7 +80,8 @@ def render(
             (:class:`~torchir.functions._sampler_op.RenderSampler`), e.g. a
             :class:`torchir.samplers.ReSTIRSampler`: render direct illumination by ReSTIR (its
             reservoirs advance by one step) and back-propagate its interior-term gradient
-            (paper 004). ``None``: the scene's integrator.
+            (Wang et al. 2023, "Amortizing Samples in Physics-Based Inverse Rendering using ReSTIR").
+            ``None``: the scene's integrator.
 
     Returns:
         ``(C, H, W)`` float32 linear radiance (C = 3 for RGB films).

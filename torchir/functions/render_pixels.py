@@ -202,7 +202,8 @@ def _pixel_passes(scene: Scene) -> _PixelPasses:
 
 class _PixelRenderOp(BoundRenderOp):
     """Primal: per-ray ``sample(Primal)``; adjoint: ``sample(Primal)`` + ``sample(Backward)``
-    replay with an independent seed (the two-stage estimator of paper 000, E3/E16)."""
+    replay with an independent seed (the two-path estimator of Yan et al. 2025, Eq. 4: independent paths for
+    the loss adjoint and for the pixel derivative)."""
 
     def primal(self) -> mi.TensorXf:
         s: _PixelSettings = self.settings

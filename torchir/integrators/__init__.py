@@ -1,8 +1,8 @@
 """Dr.Jit-side integrators written in Python (Mitsuba ``RBIntegrator`` subclasses).
 
 ``ReSTIRDirectIntegrator`` (registered with Mitsuba as ``restir_di``): ReSTIR direct
-illumination with reservoir reuse across gradient steps (paper 004). Imported lazily: the
-module needs a Mitsuba variant (call :func:`torchir.backend.variant` first).
+illumination with reservoir reuse across gradient steps (Wang et al. 2023). Imported lazily:
+the module needs a Mitsuba variant (call :func:`torchir.backend.variant` first).
 """
 from __future__ import annotations
 

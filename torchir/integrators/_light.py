@@ -1,16 +1,17 @@
-"""Light samples, reservoirs and the target function of ReSTIR direct illumination (paper 004).
+"""Light samples, reservoirs and the target function of ReSTIR direct illumination (Wang et al. 2023).
 
-A light sample ``y`` lives in the *light-vertex measure* (spec §6.2): the emitter index, the
+A light sample ``y`` lives in the *light-vertex measure*: the emitter index, the
 position, normal and uv on it, and whether it is a delta light. Re-evaluated at any shading
-point ``x`` it gives (R24)
+point ``x`` it gives
 
     f(y; x) = Le(y -> x) * fs(x, w) * g(y, x) * V(x, y),   g = 1 (delta) or |n_y . w| / dist^2
 
-and the target p̂(y; x) = lum(f) (R14). Candidates come from standard emitter sampling with
-``p_c = pdf_sel * pdf_dir * (delta ? 1 : g)``, so ``p̂ / p_c = lum(NEE weight * fs * V)`` (R25),
-and a reservoir's ``W`` is in area (or counting) measure, valid at every shading point.
+and the target p̂(y; x) = lum(f) (the luminance of Wang et al. 2023, Eq. 14). Candidates come from
+standard emitter sampling with ``p_c = pdf_sel * pdf_dir * (delta ? 1 : g)``, so
+``p̂ / p_c = lum(NEE weight * fs * V)``, and a reservoir's ``W`` is in area (or counting) measure,
+valid at every shading point.
 
-The gradient ``df/dθ * W`` of a reservoir's sample covers only ``supp(p̂) = supp(f)`` (spec §3.5):
+The gradient ``df/dθ * W`` of a reservoir's sample covers only ``supp(p̂) = supp(f)``:
 a black texel or a switched-off light has ``f = 0`` but ``df/dθ > 0``. The integrator estimates
 that remainder from the same candidates (``inv_pc`` of :func:`sample_candidate`, and
 :func:`eval_target` with ``positive_only=False``); see ``restir_di.ReSTIRDirectIntegrator``.
@@ -29,15 +30,15 @@ import mitsuba as mi
 @functools.cache
 def _types(variant: str):
     class LightSample:
-        """One light vertex (spec D8)."""
+        """One light vertex: emitter index, position, normal and uv on it, delta flag."""
 
         DRJIT_STRUCT = {"em": mi.UInt32, "p": mi.Point3f, "n": mi.Vector3f, "uv": mi.Point2f, "delta": mi.Bool}
 
     class Reservoirs:
-        """One reservoir per camera sample (spec §6.4), keyed by its shading point.
+        """One reservoir per camera sample, keyed by its shading point.
 
         The shading point is stored as (shape index, primitive, primitive uv) plus its camera
-        ray (``o``, ``d``, ``t``), so it can be rebuilt after parameters change (T-U6); ``p``
+        ray (``o``, ``d``, ``t``), so it can be rebuilt after parameters change; ``p``
         and ``n`` are the position and shading normal used for the neighbour search;
         ``offset`` is the camera sample's position in its pixel (kept by persistent offsets).
         """
@@ -96,7 +97,7 @@ def rebuild_interaction(scene: mi.Scene, r, active: mi.Bool, flags=mi.RayFlags.A
 
 def eval_target(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool, visibility: bool = True,
                 positive_only: bool = True):
-    """``(f, p̂)`` of light samples ``y`` at shading points ``si`` (R24, R14).
+    """``(f, p̂)`` of light samples ``y`` at shading points ``si`` (see the module docstring).
 
     ``f`` is the RGB contribution ``Le * fs * g * V`` (differentiable through Le and fs when
     called under ``dr.resume_grad``); ``p̂ = lum(f)``. Zero (never NaN) where inactive, on the
@@ -132,9 +133,9 @@ def eval_target(scene: mi.Scene, si: mi.SurfaceInteraction3f, y, active: mi.Bool
 
 def sample_candidate(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Sampler, active: mi.Bool,
                      visibility: bool = True, with_inv_pc: bool = False, guide=None):
-    """One light candidate (R15): emitter by ``sampling_weight``, then the emitter's own
-    sampling. Returns ``(y, f, p̂, w)`` with ``w = p̂ / p_c`` (R4, R25); ``visibility=False``
-    skips the shadow ray (the unshadowed target). ``with_inv_pc`` appends ``1 / p_c`` wherever
+    """One light candidate: emitter by ``sampling_weight``, then the emitter's own
+    sampling. Returns ``(y, f, p̂, w)`` with the RIS weight ``w = p̂ / p_c`` (Wang et al. 2023, Eq. 5);
+    ``visibility=False`` skips the shadow ray (the unshadowed target). ``with_inv_pc`` appends ``1 / p_c`` wherever
     ``y`` is a valid sample, also where ``p̂ = 0`` (0 elsewhere).
     ``guide`` (``_light_guide.GuideDraws``): some candidates come from the lanes' learned
     guides instead, and ``p_c`` is the mixture's density; the emitter's primary sample ``u``
@@ -178,12 +179,12 @@ def fresh_reservoirs(ray, pi, si, valid: mi.Bool, y, w_sum: mi.Float, phat: mi.F
                      offset: mi.Point2f | None = None):
     """The reservoirs of streaming RIS over ``candidates`` (a count, or one per lane) at the
     first hits ``(pi, si)`` of camera rays ``ray``: the chosen sample ``y`` with
-    ``W = w_sum / (M p̂(y))`` (R5), and the shading point stored to be found and rebuilt
+    ``W = w_sum / (M p̂(y))`` (Wang et al. 2023, Alg. 1), and the shading point stored to be found and rebuilt
     (``offset``: its position in the pixel)."""
     m0 = dr.select(valid, mi.Float(candidates), 0.0)
     r = dr.zeros(Reservoirs(), dr.width(valid))
     r.y, r.w_sum, r.M = y, w_sum, m0
-    r.W = dr.select(phat > 0, w_sum / (m0 * dr.select(phat > 0, phat, 1.0)), 0.0)  # (R5)
+    r.W = dr.select(phat > 0, w_sum / (m0 * dr.select(phat > 0, phat, 1.0)), 0.0)  # W := 0 where p̂ = 0
     r.shape, r.prim, r.prim_uv = pi.shape_index, pi.prim_index, pi.prim_uv
     r.o, r.d, r.t = ray.o, ray.d, pi.t
     if offset is not None:

@@ -17,12 +17,14 @@ __all__ = ["EmitterWatch", "GeometryWatch", "as_tuples"]
 class EmitterWatch:
     """Which lights are on, and where they are, as the scene's parameters say.
 
-    Temporal reuse tests a neighbour's support (R8) in the *current* scene, which is exact only
-    while the support stays put (spec D7). A light that comes on (all its emission values were
-    zero) or moves makes the old reservoirs unable to hold its samples, so Z would count them
-    and darken the image (measured: 0.67x of the reference on the first step after a spot came
-    on). :meth:`same_support` says when the previous step's reservoirs must not be reused.
-    A light dimmed, brightened or switched off keeps or shrinks the support: reuse goes on.
+    Temporal reuse tests a neighbour's support (whether ``p̂`` of the chosen sample is positive
+    there, which decides the count ``Z`` of the unbiased 1/Z weight) in the *current* scene, not
+    the previous step's, which is exact only while the support stays put. A light that comes on
+    (all its emission values were zero) or moves makes the old reservoirs unable to hold its
+    samples, so Z would count them and darken the image (measured: 0.67x of the reference on the
+    first step after a spot came on). :meth:`same_support` says when the previous step's
+    reservoirs must not be reused. A light dimmed, brightened or switched off keeps or shrinks
+    the support: reuse goes on.
     """
 
     _EMISSION = ("radiance.value", "intensity.value", "irradiance.value", "scale", ".data")

@@ -1,6 +1,6 @@
 """Shadow-edge derivatives of direct illumination: the secondary visibility-boundary term,
-sampled on the edges of the meshes being differentiated (paper 004 R20; the multi-directional
-boundary sampling of Zhang et al. 2020).
+sampled on the edges of the meshes being differentiated (Wang et al. 2023, Eq. 21; the
+multi-directional boundary sampling of Zhang et al. 2020).
 
 A pixel's direct light ``I_q = ∫ W_q(x1) ∫ Le f G(x0, x1) V(x0, x1) dA(x0) dA(x1)`` changes
 through ``V`` when an occluder moves. For a receiver ``x1`` the lit part of a light is bounded by
@@ -20,11 +20,11 @@ changes the measure by (derived for this module; checked against finite differen
 receiver's cosine in ``G``.
 
 The (edge, light) pair is drawn by edge length x the scene's light pmf, or, given a guide kept
-across steps, mostly by what the earlier steps' samples found on each pair (paper 004 R22):
+across steps, mostly by what the earlier steps' samples found on each pair (Wang et al. 2023, Eq. 27):
 2.5x lower sd for the blocker below at 64².
 
 The light point may be resampled: RIS over several points by area with the target ``|adjoint · F|``
-(paper 004 R21). Off by default: on ``occluded_lights`` even 64 candidates lowered the variance only
+(Wang et al. 2023, Eq. 24). Off by default: on ``occluded_lights`` even 64 candidates lowered the variance only
 1.4x at 64² (none at 128²), at 3-95x the cost; the edge and the point on it set the noise.
 So may the whole sample (pair, point on the edge, light point; ``edge_candidates``), with the same
 target. At a fixed adjoint, perfect importance sampling of ``|adjoint · F|`` would leave 1/6 of
@@ -98,18 +98,18 @@ def shadow_edge_backward(
     length. ``grad_in`` is the image adjoint (H, W, 3) of sensor ``sensor_index``.
 
     ``guides`` (a dict kept by the caller across steps, or None): per mesh, a running estimate of
-    each (edge, light) pair's share of ``sum |adjoint * contribution|`` (paper 004 R22, with the
+    each (edge, light) pair's share of ``sum |adjoint * contribution|`` (Wang et al. 2023, Eq. 27, with the
     light in the pair). The pair is then drawn from a mixture: ``1 - GUIDE_DEFENSIVE`` by the
     guide, the rest by edge length x the scene's light pmf, so every pair keeps a
     probability and the estimate stays unbiased; each step's samples update the guide.
 
     ``candidates``: light points per edge sample, one kept by RIS with the target
-    ``|adjoint · F|`` (paper 004 R21; 1: by area alone). ``edge_candidates``: whole edge samples
+    ``|adjoint · F|`` (Wang et al. 2023, Eq. 24; 1: by area alone). ``edge_candidates``: whole edge samples
     (pair, point on the edge, light point) per sample kept, one kept by RIS with the same target
     (1: the pair's pmf alone).
 
     ``chains`` (a dict kept by the caller across steps, or None): temporal reuse of the whole
-    edge samples (paper 004 Alg. 6, with the edge sample itself in the reservoir rather than
+    edge samples (Wang et al. 2023, Alg. 6, with the edge sample itself in the reservoir rather than
     the light point alone). Each sample slot keeps its chain's sample, re-evaluates it under the
     step's adjoint and geometry and resamples it against the ``edge_candidates`` fresh ones,
     its confidence capped at ``chain_cap``, or at ``moving_cap`` for a step after the mesh moved (a
@@ -191,7 +191,7 @@ def _mesh_backward(scene, sensor, grad_in, mesh, table: EdgeTable, lengths: np.n
             inv_pdf_edge = dr.gather(mi.Float, lengths_dr, pair // n_lights) / pdf
 
             # x0 on the pair's light: RIS over `candidates` points by area, target |adjoint * F|
-            # (paper 004 R21); the kept one's estimate is sign(F(y)) * mean(|F_k| / p_k)
+            # (Wang et al. 2023, Eq. 24); the kept one's estimate is sign(F(y)) * mean(|F_k| / p_k)
             kept, w_sum = None, mi.Float(0.0)
             for _ in range(candidates):
                 cand = _edge_sample(scene, sensor, grad_in, mesh, table, pair, along, sampler.next_2d(), n_lights, eps, (film_w, film_h))

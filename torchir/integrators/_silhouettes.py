@@ -1,4 +1,4 @@
-"""Primary-silhouette derivatives of direct illumination (paper 004 §5.1, Alg. 5): the
+"""Primary-silhouette derivatives of direct illumination (Wang et al. 2023, §5.1, Alg. 5): the
 visibility-boundary term of the camera rays, sampled on the silhouette edges of the meshes being
 differentiated, with the radiance on either side from the ReSTIR integrator's RIS, optionally
 combined with an earlier step's reservoirs.

@@ -272,7 +272,7 @@ static void chain_to_j(const float* J, const float* gd, float e, float inv_beta,
   }
 }
 
-/* The LOI terms of one inner scale (E7, E10, E11), forward and gradient in one pass per bin.
+/* The LOI terms of one inner scale (W1 of each aperture term), forward and gradient in one pass per bin.
    J (B, C, H, W): the rendered image blurred by sigma, on the support; Z (B, C, K, H, W): the
    reference's point CDFs; edges (K). Adds each term's scale * sum |A D| pw to loss[b] and, when
    grad is not NULL, d loss[b] / d J into grad (B, C, H, W). buffer: the largest plane any term

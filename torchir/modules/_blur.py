@@ -34,7 +34,7 @@ def _gaussian_matrix(n: int, sigma: float, truncate: float, dtype: torch.dtype, 
     i = torch.arange(n, dtype=torch.float64)
     d = i[:, None] - i[None, :]
     m = torch.exp(-0.5 * (d / sigma) ** 2) * (d.abs() <= radius)
-    m = m / m.sum(dim=1, keepdim=True)  # rows sum to 1: border renormalisation (spec A1, A12)
+    m = m / m.sum(dim=1, keepdim=True)  # rows sum to 1: border renormalisation of the truncated kernel
     return m.to(dtype=dtype, device=device)
 
 

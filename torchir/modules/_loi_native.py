@@ -1,15 +1,16 @@
 """The LOI loss's terms of one inner scale, forward and gradient fused per bin (native kernel).
 
 ``loi_sigma`` in :mod:`._banded`'s compiled library takes one ``(H, W)`` plane per batch item,
-channel and bin edge at a time: the point-CDF difference ``D`` (E11), every aperture term's
-``A_alpha D`` through its banded stages, ``|A_alpha D|`` weighted and summed (E7), and, for the
-gradient, ``A_alpha^T (sign(A_alpha D) w)`` summed over the terms and chained to ``J_sigma``
-(E10), all while the plane is in cache. The ``(B, C, K, H, W)`` volumes the torch path makes
-(``u``, ``D``, one ``A_alpha D`` per term, their signs, ``dE/dD``) are never materialised, and
-the gradient is ready when the forward pass ends (the loss is a sum: its backward only scales
-it). The reference's CDFs must come from :func:`point_cdf` (the same ``Phi``). Same values as
-the torch path to float32 rounding (``Phi`` and ``exp`` by polynomials good to ~1e-7
-relative); float32 CPU tensors only, else :func:`sigma_term` returns ``None``.
+channel and bin edge at a time: the point-CDF difference ``D``, every aperture term's
+``A_alpha D`` through its banded stages, ``|A_alpha D|`` weighted and summed (the W1 distance of
+Mehta et al. 2025, Eq. 5), and, for the gradient, ``A_alpha^T (sign(A_alpha D) w)`` summed over
+the terms and chained to ``J_sigma``, all while the plane is in cache. The ``(B, C, K, H, W)``
+volumes the torch path makes (``u``, ``D``, one ``A_alpha D`` per term, their signs,
+``dE/dD``) are never materialised, and the gradient is ready when the forward pass ends (the
+loss is a sum: its backward only scales it). The reference's CDFs must come from
+:func:`point_cdf` (the same ``Phi``). Same values as the torch path to float32 rounding (``Phi``
+and ``exp`` by polynomials good to ~1e-7 relative); float32 CPU tensors only, else
+:func:`sigma_term` returns ``None``.
 """
 from __future__ import annotations
 

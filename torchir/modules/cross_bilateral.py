@@ -1,12 +1,14 @@
-"""G-buffer denoisers: the baselines of paper 002 (cross-bilateral filter, G-buffer regression).
+"""G-buffer denoisers: the baselines of Gu et al. 2024 (cross-bilateral filter, G-buffer regression).
 
-Both weight a pixel's neighbours by how similar their G-buffers are (albedo, shading normal,
-depth, from :func:`torchir.functions.render_gbuffers`) and by their distance:
+Gu et al. 2024 is "Target-Aware Image Denoising for Inverse Monte Carlo Rendering" (SIGGRAPH
+2024), "the paper" below. Both weight a pixel's neighbours by how similar their G-buffers are
+(albedo, shading normal, depth, from :func:`torchir.functions.render_gbuffers`) and by their
+distance:
 
     w^cb_{i|c} = exp(-|q_i-q_c|^2/(2 b_q^2) - |rho_i-rho_c|^2/(2 b_rho^2)
-                     - |n_i-n_c|^2/(2 b_n^2) - (d_i-d_c)^2/(2 b_d^2))       (paper 002, Eq. 6)
+                     - |n_i-n_c|^2/(2 b_n^2) - (d_i-d_c)^2/(2 b_d^2))       (Gu et al. 2024, Eq. 6)
 
-* :class:`CrossBilateralDenoiser`: the weighted mean ``sum w f~ / sum w`` (paper 002, Eq. 5);
+* :class:`CrossBilateralDenoiser`: the weighted mean ``sum w f~ / sum w`` (Gu et al. 2024, Eq. 5);
 * :class:`GBufferRegressionDenoiser`: a weighted local linear fit of ``f~`` on the G-buffers and
   the pixel offset (Moon et al. 2014, as the paper's baseline). As the released code: the
   regression columns are the raw G-buffer differences (albedo in [0, 1], depth / max depth) and
@@ -55,7 +57,7 @@ __all__ = [
 ]
 
 GUIDE_CHANNELS = 7  # albedo RGB, normal XYZ, depth (torchir.functions.render_gbuffers)
-_RIDGE = 1e-3  # added to every diagonal entry of the regression's normal matrix ([code])
+_RIDGE = 1e-3  # added to every diagonal entry of the regression's normal matrix (as the authors' code)
 BORDERS = ("truncate", "reflect")
 
 
@@ -79,8 +81,8 @@ def _check_guide(guide: torch.Tensor | None, y: torch.Tensor) -> torch.Tensor:
 
 
 def _features(guide: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """``(B, 7, H, W)`` G-buffers as [code] feeds them: albedo clamped to [0, 1], normal, depth
-    divided by the image's maximum."""
+    """``(B, 7, H, W)`` G-buffers as the authors' code feeds them: albedo clamped to [0, 1],
+    normal, depth divided by the image's maximum."""
     g = guide.to(dtype)
     albedo, normal, depth = g[:, :3].clamp(0, 1), g[:, 3:6], g[:, 6:7]
     d_max = depth.amax(dim=(1, 2, 3), keepdim=True)
@@ -98,7 +100,8 @@ def _scaled(f: torch.Tensor, bands: tuple[float, float, float]) -> torch.Tensor:
 
 def _offsets(n: int, r: int, border: str, like: torch.Tensor) -> torch.Tensor:
     """``(2r+1, n)``: ``position(j + k - r) - j`` along one axis, where ``position`` is the pixel the
-    window reads (the mirrored one for ``"reflect"``, as [code]; for ``"truncate"`` just ``k - r``)."""
+    window reads (the mirrored one for ``"reflect"``, as the authors' code does; for
+    ``"truncate"`` just ``k - r``)."""
     src = mirror_index(n, r) if border == "reflect" else range(-r, n + r)
     pos = torch.tensor(list(src), dtype=like.dtype, device=like.device)
     j = torch.arange(n, dtype=like.dtype, device=like.device)
@@ -125,8 +128,8 @@ class _Window:
 
 
 def _cb_weights(f: torch.Tensor, radius: int, b_space: float, border: str):
-    """``weight(dy, dx)`` -> ``w^cb_delta`` ``(B, 1, H, W)`` (paper 002, Eq. 6) from bandwidth-scaled
-    features ``f``; zero outside the image for ``"truncate"``."""
+    """``weight(dy, dx)`` -> ``w^cb_delta`` ``(B, 1, H, W)`` (Gu et al. 2024, Eq. 6) from
+    bandwidth-scaled features ``f``; zero outside the image for ``"truncate"``."""
     r = radius
     H, W = f.shape[2:]
     win = _Window(f, r, border)
@@ -155,14 +158,14 @@ def _cross_bilateral_taps(guide: torch.Tensor, radius: int, b_space: float, band
         table = f.new_empty(K * K, B, 1, H, W)
         for k in range(K * K):
             table[k] = weight(*divmod(k, K))
-        table /= table.sum(0)  # paper 002, Eq. 5
+        table /= table.sum(0)  # Gu et al. 2024, Eq. 5
         taps = _Taps(radius, (H, W), lambda dy, dx: table[dy * K + dx], border)
         taps.table = table
         return taps
     S0 = sum(weight(*divmod(k, K)) for k in range(K * K))  # >= 1: the centre weighs 1
 
     def tap(dy: int, dx: int) -> torch.Tensor:
-        return weight(dy, dx).div_(S0)  # paper 002, Eq. 5
+        return weight(dy, dx).div_(S0)  # Gu et al. 2024, Eq. 5
 
     return _Taps(radius, (H, W), tap, border)
 
@@ -170,7 +173,7 @@ def _cross_bilateral_taps(guide: torch.Tensor, radius: int, b_space: float, band
 def _regression_taps(guide: torch.Tensor, radius: int, b_space: float, bands: tuple[float, float, float],
                      dtype: torch.dtype, border: str) -> _Taps:
     """Taps of the G-buffer local linear regression: rows ``x = [1, g_i - g_c, delta / r]``
-    (10 columns, raw G-buffer differences as [code]), ``M = sum w x x^T + ridge I``,
+    (10 columns, raw G-buffer differences as in the authors' code), ``M = sum w x x^T + ridge I``,
     ``l_{i|c} = w_{i|c} x_i^T M^{-1} e_1``."""
     r = radius
     f = _features(guide, torch.float64)
@@ -183,7 +186,8 @@ def _regression_taps(guide: torch.Tensor, radius: int, b_space: float, bands: tu
         one = torch.ones(B, 1, H, W, dtype=f.dtype, device=f.device)
         oy, ox = win.offset(dy, dx)
         offset = torch.stack(torch.broadcast_tensors(oy, ox)).div_(scale).expand(B, 2, H, W)
-        # raw differences, not scaled by the bandwidths: the 1e-3 ridge is in these units ([code])
+        # raw differences, not scaled by the bandwidths: the 1e-3 ridge is in these units (as in the
+        # authors' code)
         return torch.cat([one, win.diff(dy, dx), offset], 1)
 
     n = n_f + 3
@@ -192,7 +196,7 @@ def _regression_taps(guide: torch.Tensor, radius: int, b_space: float, bands: tu
     for k in range(K * K):
         dy, dx = divmod(k, K)
         x = rows(dy, dx)
-        M += weight(dy, dx).unsqueeze(1) * x.unsqueeze(2) * x.unsqueeze(1)  # X^T W X (paper 002, Eq. 10)
+        M += weight(dy, dx).unsqueeze(1) * x.unsqueeze(2) * x.unsqueeze(1)  # X^T W X (Gu et al. 2024, Eq. 10)
     e1 = torch.zeros(n, 1, dtype=f.dtype, device=f.device)
     e1[0] = 1.0
     u = torch.linalg.solve(M.permute(0, 3, 4, 1, 2), e1).squeeze(-1).permute(0, 3, 1, 2)  # (B, 10, H, W)
@@ -244,7 +248,7 @@ def cross_bilateral_denoise(
     max_cache_bytes: int = 2**30,
     check_finite: bool = True,
 ) -> torch.Tensor:
-    """Cross-bilateral filter guided by G-buffers (paper 002, Eqs. 5-6).
+    """Cross-bilateral filter guided by G-buffers (Gu et al. 2024, Eqs. 5-6).
 
     Args:
         noisy: the noisy render.
@@ -284,7 +288,7 @@ def gbuffer_regression_denoise(
     max_cache_bytes: int = 2**30,
     check_finite: bool = True,
 ) -> torch.Tensor:
-    """Local linear regression on G-buffers with cross-bilateral weights (paper 002, Sec. 5,
+    """Local linear regression on G-buffers with cross-bilateral weights (Gu et al. 2024, Sec. 5,
     Moon et al. 2014): per pixel, ``f~_i ~ a + beta . [g_i - g_c, (i - c)/r]`` fitted with
     weights ``w^cb`` (Eq. 6) and ridge ``1e-3`` on every diagonal entry; the output is ``a``.
     As the released code, ``g`` are the raw G-buffers (albedo clamped to [0, 1], depth / max

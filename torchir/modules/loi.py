@@ -1,19 +1,20 @@
 """Locally orderless images (LOI) loss: Wasserstein-1 between local intensity histograms.
 
-Paper 003 (Mehta, Chandraker, Ramamoorthi, "Locally Orderless Images for Optimization in
-Differentiable Rendering"); equation labels E0-E11 and choices A1-A12 refer to
-``spec/loi-loss.md``. Every pixel becomes a local histogram of intensities: blur the image by
-the inner scale ``sigma`` (paper Eq. 1-2), spread each value into a Gaussian over intensity of
-width ``beta`` (Eq. 3), and average these over a spatial window of extent ``alpha`` (Eq. 4).
+Mehta, Chandraker and Ramamoorthi, "Locally Orderless Images for Optimization in Differentiable
+Rendering" (CVPR 2025), "the paper" below; equation numbers are the paper's. Every pixel
+becomes a local histogram of intensities: blur the image by the inner scale ``sigma`` (paper
+Eq. 1-2), spread each value into a Gaussian over intensity of width ``beta`` (Eq. 3), and
+average these over a spatial window of extent ``alpha`` (Eq. 4).
 The loss is the 1-D Wasserstein-1 distance of rendered and reference local histograms per
 pixel and channel, i.e. the L1 distance of their CDFs (Eq. 5, p = 1), summed over the
 ``sigma x alpha`` grid. Because a histogram keeps *which* intensities are nearby (not their
 mean), a feature far from its target still gets a gradient towards the place where its own
 intensity level is missing: the renderer's sparse RGB gradients reach much further.
 
-The histogram is never materialised: with soft bins by the normal CDF ``Phi`` (E4), the local
-CDF at bin edge ``e_j`` is ``A_alpha * Phi((e_j - J_sigma) / beta)`` (E6), and since the blur
-is linear, one blur of the *difference* of the two images' point CDFs per scale suffices (E11).
+The histogram is never materialised: with soft bins by the normal CDF ``Phi`` (each bin's exact
+Gaussian mass), the local CDF at bin edge ``e_j`` is ``A_alpha * Phi((e_j - J_sigma) / beta)``,
+and since the blur is linear, one blur of the *difference* of the two images' point CDFs per
+scale suffices.
 """
 from __future__ import annotations
 
@@ -40,7 +41,7 @@ _REDUCTIONS = ("mean", "sum", "none")
 _BORDERS = ("pad", "renormalize")
 _CHANNELS = ("independent", "luminance")
 _LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709, linear RGB
-_SMALL_BETA = 1.0 / 128  # below: many bins, gradient only within 3 beta of each value (spec 5.5)
+_SMALL_BETA = 1.0 / 128  # below: many bins, gradient only within 3 beta of each value (warns)
 _OUT_OF_RANGE_FRACTION = 0.01  # warn when more pixels than this lie beyond k_hi + 3 beta
 # The default (exact=False): terms with alpha >= 1 / FAST_CELL_FRACTION px are evaluated on
 # cells of floor(FAST_CELL_FRACTION * alpha) px, their input averaged over the same cells first.
@@ -78,7 +79,7 @@ TRANSFORMS: dict[str, Callable[[torch.Tensor], torch.Tensor] | None] = {
     "log1p": _log1p,
 }
 
-# The paper's three settings (spec section 3); A11: the raster preset follows Table 3's caption.
+# The paper's three settings; the raster preset follows Table 3's caption, not section 4.4's text ("as 4.1").
 LOI_PRESETS: dict[str, dict[str, Any]] = {
     "disks": dict(alphas=(1, 5, 15), sigmas=(1, 5, 15, 45), beta=0.125),  # section 4.1, Table 1
     "pathtracing": dict(alphas=(1, 5, 15, 45), sigmas=(1, 5), beta=0.125),  # section 4.2, Table 2
@@ -239,7 +240,7 @@ def _check_mask(mask: Any, like: torch.Tensor) -> torch.Tensor:
 
 # ------------------------------------------------------------------------------ the pipeline
 def _transform(x: torch.Tensor, cfg: _Config) -> torch.Tensor:
-    """E0: luminance (optional) and the intensity transform tau."""
+    """Luminance (optional) and the intensity transform tau (not in the paper, which works on [0, 1])."""
     if cfg.channels == "luminance":
         if x.shape[1] != 3:
             raise ValueError(f"channels='luminance' needs 3 channels, got {x.shape[1]}")
@@ -275,20 +276,20 @@ def _margin(h: int, w: int, cfg: _Config) -> int:
 
 
 def _pad(x: torch.Tensor, m: int, value: float) -> torch.Tensor:
-    # spec 5.4: a constant margin, identical in both images, keeps the gradient's sign right
+    # A constant margin, identical in both images, keeps the gradient's sign right
     # near the frame, where renormalised borders flip it
     return F.pad(x, (m, m, m, m), value=value) if m else x
 
 
 def _pixel_scales(cfg: _Config, h: int, w: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    """Scales in pixels (A2: ``relative`` scales are fractions of ``min(H, W)``)."""
+    """Scales in pixels (``relative`` scales are fractions of ``min(H, W)``)."""
     f = float(min(h, w)) if cfg.relative else 1.0
     fix = lambda s: 0.0 if s * f < MIN_SCALE else s * f  # noqa: E731
     return tuple(fix(s) for s in cfg.sigmas), tuple(fix(a) for a in cfg.alphas)
 
 
 def _edges(cfg: _Config, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """E3: ``K = N + 2T + 1`` bin edges ``lo + j beta``, ``j = -T .. N + T``."""
+    """The ``K = N + 2T + 1`` bin edges ``lo + j beta``, ``j = -T .. N + T``."""
     lo, hi = cfg.value_range
     n = max(1, round((hi - lo) / cfg.beta))
     j = torch.arange(-cfg.tail, n + cfg.tail + 1, dtype=torch.float64)
@@ -296,17 +297,18 @@ def _edges(cfg: _Config, dtype: torch.dtype, device: torch.device) -> torch.Tens
 
 
 def _point_cdf(j_sigma: torch.Tensor, edges: torch.Tensor, beta: float) -> torch.Tensor:
-    """E4/E6 before the aperture: ``Phi((e_j - J_sigma(x)) / beta)``, ``(B, C, K, H, W)``; by the
-    fused kernel's ``Phi`` where that kernel will take the difference (see ``_loi_native``)."""
+    """Point CDFs at the bin edges, before the aperture: ``Phi((e_j - J_sigma(x)) / beta)``,
+    ``(B, C, K, H, W)``; by the fused kernel's ``Phi`` where that kernel will take the difference
+    (see ``_loi_native``)."""
     if _loi_native.usable(j_sigma) and not (j_sigma.requires_grad and torch.is_grad_enabled()):
         return _loi_native.point_cdf(j_sigma, edges, beta)
     return _phi_cdf((edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)) / beta)
 
 
 def _pixel_weights(b: int, h: int, w: int, m: int, mask: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
-    """Per-pixel weights of E7 on the (padded) canvas, ``(B, 1|C, Hp, Wp)``.
+    """Per-pixel weights of the W1 terms (Eq. 5) on the (padded) canvas, ``(B, 1|C, Hp, Wp)``.
 
-    A10: the loss is a mean over the image's pixels; the margin of ``border="pad"`` is summed
+    The loss is a mean over the image's pixels; the margin of ``border="pad"`` is summed
     with the same weight (normalised by the *unpadded* pixel count, so values are comparable
     with ``border="renormalize"``). A mask weights image pixels (normalised by its sum); the
     margin keeps weight 1."""
@@ -428,22 +430,22 @@ def _term_weights(pw: torch.Tensor, t: _Term) -> torch.Tensor:
 
 
 def _term_value(out: torch.Tensor, t: _Term, beta: float, pw: torch.Tensor) -> torch.Tensor:
-    """E7, unweighted, ``(B,)``, from the term's blurred difference ``out = A_alpha * D``."""
+    """One term's W1 (Eq. 5), unweighted, ``(B,)``, from its blurred difference ``out = A_alpha * D``."""
     w1 = out.abs().sum(2) * beta  # (B, C, H', W'): W1 per pixel/cell and channel
     return (w1 * _term_weights(pw, t)).flatten(1).sum(1) / out.shape[1]
 
 
 def _scale_terms(d: torch.Tensor, terms: Sequence[_Term], beta: float, pw: torch.Tensor, truncate: float) -> list[torch.Tensor]:
-    """E7 for each term: ``[(B,)]``, from ``d = Phi' - Phi^gt`` (E11: one blur per scale) on
-    the support."""
+    """The W1 (Eq. 5) of each term: ``[(B,)]``, from ``d = Phi' - Phi^gt`` (the difference of the
+    point CDFs, blurred once instead of both images' CDFs) on the support."""
     return [_term_value(_aperture(d, op), t, beta, pw) for t, op in zip(terms, _term_operators(d, pw, terms, truncate))]
 
 
 class _SigmaTerm(torch.autograd.Function):
     """``sum_alpha w_alpha E(sigma, alpha)`` for one inner scale, with a hand-written backward.
 
-    Forward: ``u = (e_j - J_sigma') / beta``, ``D = Phi(u) - Phi^gt`` (E11), then per term
-    ``|A_alpha * D|`` summed over bins and weighted pixels (E7). Backward (E10):
+    Forward: ``u = (e_j - J_sigma') / beta``, ``D = Phi(u) - Phi^gt``, then per term
+    ``|A_alpha * D|`` summed over bins and weighted pixels (Eq. 5). Backward:
     ``dE/dD = sum_alpha A_alpha^T (sign(A_alpha * D) w pw)`` and
     ``dE/dJ_sigma' = -sum_j phi(u_j) dE/dD_j / beta``. Fusing these saves most of the
     elementwise passes autograd would make over the ``(B, C, K, H, W)`` tensors. It stores
@@ -453,7 +455,7 @@ class _SigmaTerm(torch.autograd.Function):
     @staticmethod
     def _difference(j_sigma, z_target, edges, beta):
         u = (edges.view(1, 1, -1, 1, 1) - j_sigma.unsqueeze(2)).div_(beta)
-        return u, _phi_cdf(u).sub_(z_target)  # E11
+        return u, _phi_cdf(u).sub_(z_target)  # D = Phi' - Phi^gt
 
     @staticmethod
     def forward(ctx, j_sigma, z_target, edges, beta, terms, pw, truncate, low_memory):  # noqa: D102
@@ -560,13 +562,13 @@ def _target_cdfs(p: _Prepared, cfg: _Config) -> list[torch.Tensor]:
 
 
 def _per_image(p: _Prepared, cfg: _Config, z_targets: list[torch.Tensor]) -> torch.Tensor:
-    """E8: ``sum_{sigma, alpha} w E(sigma, alpha)`` per batch item, ``(B,)``."""
+    """The total ``sum_{sigma, alpha} w E(sigma, alpha)`` per batch item, ``(B,)``."""
     total = p.rendered.new_zeros(p.shape[0])
     for s, zt, plan, trim in zip(p.sigmas, z_targets, p.plans, p.trims):
         terms = tuple(t for t in plan if t.weight)
         if not terms:
             continue
-        j_sigma = _trim(blur(p.rendered, s, cfg.truncate), trim)  # E1
+        j_sigma = _trim(blur(p.rendered, s, cfg.truncate), trim)  # inner scale, Eqs. 1-2
         total = total + _SigmaTerm.apply(j_sigma, zt, p.edges, cfg.beta, terms, p.pw, cfg.truncate, cfg.low_memory)
     return total
 
@@ -596,7 +598,7 @@ def loi_loss(
     cell_fraction: float | None = None,
     exact: bool = False,
 ) -> torch.Tensor:
-    r"""Locally orderless images loss (paper 003, Eq. 1-5): W1 between local histograms.
+    r"""Locally orderless images loss (Mehta et al. 2025, Eqs. 1-5): W1 between local histograms.
 
     .. math::
         E = \sum_{\sigma, \alpha} w_{\sigma\alpha} \frac{1}{C |\Omega|} \sum_{c, x} \beta \sum_j
@@ -615,7 +617,8 @@ def loi_loss(
             ``"log1p"``, or a callable.
         channels: ``"independent"`` (per-channel marginals, averaged) or ``"luminance"``.
         border: ``"pad"`` (a constant margin of ``pad_frac * max(H, W)`` pixels around both
-            images; spec 5.4) or ``"renormalize"`` (border-renormalised blurs only).
+            images, which keeps the gradient's sign right near the frame) or ``"renormalize"``
+            (border-renormalised blurs only).
         weights: ``(len(sigmas), len(alphas))`` per-term weights (default all 1).
         relative: scales are fractions of ``min(H, W)`` instead of pixels.
         truncate: Gaussian kernels are cut at ``truncate`` std-devs (capped at the image size).
@@ -793,7 +796,7 @@ class LOILoss(nn.Module):
             return out
 
     def cdfs(self, img: torch.Tensor, sigma: float, alpha: float) -> torch.Tensor:
-        """Local CDFs at the bin edges (E6), ``(B, C, K, H, W)``, ``K = N + 2 tail + 1``
+        """Local CDFs at the bin edges, ``(B, C, K, H, W)``, ``K = N + 2 tail + 1``
         (computed with this loss's transform, border and scale units)."""
         x = _as_batch("img", img)
         j = _transform(x, self.cfg)
@@ -806,7 +809,7 @@ class LOILoss(nn.Module):
         return z[..., m : m + h, m : m + w] if m else z
 
     def histograms(self, img: torch.Tensor, sigma: float, alpha: float) -> torch.Tensor:
-        """The locally orderless image (E5): local histograms ``(B, C, K + 1, H, W)`` whose
+        """The locally orderless image (Eq. 4): local histograms ``(B, C, K + 1, H, W)`` whose
         bins are ``(-inf, e_0), [e_0, e_1), ..., [e_{K-1}, inf)``; they sum to 1 per pixel."""
         cdf = self.cdfs(img, sigma, alpha)
         zero = torch.zeros_like(cdf[:, :, :1])

@@ -1,12 +1,13 @@
 """Multi-scale RGB baselines for the LOI loss: Gaussian pyramid (GP) and multi-scale L1/L2.
 
-``gaussian_pyramid_loss``: the classic image pyramid (paper 003's "GP" baseline): level 0 is the
-image, level ``l + 1`` is level ``l`` blurred by ``sigma`` and subsampled by 2; the loss sums
-the mean squared (``p=2``) or absolute (``p=1``) difference of every level.
+``gaussian_pyramid_loss``: the classic image pyramid (the "GP" baseline of Mehta et al. 2025):
+level 0 is the image, level ``l + 1`` is level ``l`` blurred by ``sigma`` and subsampled by 2;
+the loss sums the mean squared (``p=2``) or absolute (``p=1``) difference of every level.
 ``multiscale_l1_loss`` / ``multiscale_l2_loss``: full-resolution blur stacks, the mean L1/L2
 difference of both images blurred by each of ``sigmas`` (pixels), summed over the scales. The
-L1 stack is exactly the LOI loss with ``alphas=(0,)`` (spec E9), the "sigma-space only"
-ablation; the L2 stack is the "MSE of blurred images" GP variant used in the spec's runs.
+L1 stack is exactly the LOI loss with ``alphas=(0,)`` for values in range (the W1 distance of
+two equal-width Gaussians is the distance of their means), the "sigma-space only" ablation; the
+L2 stack is the "MSE of blurred images" variant of the GP baseline.
 
 All blurs are border-renormalised and handle kernels larger than the image.
 

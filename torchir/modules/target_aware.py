@@ -1,15 +1,17 @@
-"""Target-aware image denoising for inverse rendering (paper 002: Gu, Back, Yoon, Moon, SIGGRAPH 2024).
+"""Target-aware image denoising for inverse rendering (Gu et al. 2024).
 
-Each pixel ``c`` of the noisy render ``f~`` is fitted, per channel, as an affine function of the
-*target* colour over its ``(2r+1)^2`` window (truncated at the image border), with weights that
-depend only on the target:
+Gu, Back, Yoon and Moon, "Target-Aware Image Denoising for Inverse Monte Carlo Rendering"
+(SIGGRAPH 2024), "the paper" below; equation numbers are the paper's. Each pixel ``c`` of the
+noisy render ``f~`` is fitted, per channel, as an affine function of the *target* colour over
+its ``(2r+1)^2`` window (truncated at the image border), with weights that depend only on the
+target:
 
-    w_{i|c} = exp(-||log(1+I_i) - log(1+I_c)||^2 / (2 b^2))                 (paper 002, Eq. 9)
-    (a_c, b_c) = argmin sum_i w_{i|c} (f~_i - a - b (I_i - I_c))^2            (paper 002, Eq. 8)
-    f^_c = a_c = sum_i l_{i|c} f~_i                                           (paper 002, Eq. 11)
+    w_{i|c} = exp(-||log(1+I_i) - log(1+I_c)||^2 / (2 b^2))                 (Eq. 9)
+    (a_c, b_c) = argmin sum_i w_{i|c} (f~_i - a - b (I_i - I_c))^2            (Eq. 8)
+    f^_c = a_c = sum_i l_{i|c} f~_i                                           (Eq. 11)
 
 The smoother weights ``l`` depend only on the target, so the denoiser is one constant linear
-operator ``L``: forward ``L f~``, backward ``L^T g`` (paper 002, Eq. 12). Both run as loops over
+operator ``L``: forward ``L f~``, backward ``L^T g`` (Eq. 12). Both run as loops over
 the window's taps (``_Gather`` / ``_Scatter``, a pair of autograd Functions, each the other's
 backward, so double backward works too); the taps are built once per target and cached.
 
@@ -60,7 +62,7 @@ def serial_for(numel: int) -> Iterator[None]:
 def mirror_index(n: int, r: int) -> list[int]:
     """Source pixel of each of the ``n + 2r`` positions of an axis padded by ``r`` on both sides,
     mirrored about the edge pixels without repeating them (numpy ``mode="reflect"``: ``-1 -> 1``,
-    ``n -> n - 2``), as the authors' code of paper 002 does; reflected again when ``r >= n``."""
+    ``n -> n - 2``), as the authors' released code does; reflected again when ``r >= n``."""
     if n == 1:
         return [0] * (1 + 2 * r)
     period = 2 * (n - 1)
@@ -153,7 +155,7 @@ class _Taps:
         return self.kernel**2 * one.numel() * like.element_size()
 
     def gather(self, y: torch.Tensor, squared: bool = False) -> torch.Tensor:
-        """``out_c = sum_delta l_delta(c) y_{c+delta}`` (paper 002, Eq. 11)."""
+        """``out_c = sum_delta l_delta(c) y_{c+delta}`` (Gu et al. 2024, Eq. 11)."""
         r, (H, W) = self.radius, self.size
         y_pad = pad_window(y, r, self.border)
         out = torch.zeros_like(y)
@@ -163,7 +165,7 @@ class _Taps:
         return out
 
     def scatter(self, g: torch.Tensor) -> torch.Tensor:
-        """The transpose: ``grad_{c+delta} += l_delta(c) g_c`` (paper 002, Eq. 12), as slice-adds
+        """The transpose: ``grad_{c+delta} += l_delta(c) g_c`` (Gu et al. 2024, Eq. 12), as slice-adds
         into a padded buffer, then the adjoint of the padding: deterministic, no atomics."""
         r, (H, W) = self.radius, self.size
         g_pad = g.new_zeros(g.shape[:-2] + (H + 2 * r, W + 2 * r))
@@ -298,7 +300,7 @@ def check_hparams(radius: int, bandwidth: float, impl: str, max_cache_bytes: int
 
 # ------------------------------------------------------------------- target-aware weights
 def _log_target(t: torch.Tensor, weight_mode: str) -> torch.Tensor:
-    """``log(1 + max(I, 0))`` of the channels the weights use (paper 002, Eq. 9)."""
+    """``log(1 + max(I, 0))`` of the channels the weights use (Gu et al. 2024, Eq. 9)."""
     if bool((t <= -1).any()):
         raise ValueError("target has values <= -1: the weights use log(1 + I), which is undefined there")
     if bool((t < 0).any()):
@@ -320,7 +322,7 @@ def _target_taps(
 ) -> _Taps:
     """The taps ``l_delta(c) = w_delta(c) (a_c + b_c (I_{c+delta} - I_c))`` of one target.
 
-    Moments are accumulated in float64 (paper 002, Eq. 10 solved in closed form):
+    Moments are accumulated in float64 (Gu et al. 2024, Eq. 10 solved in closed form):
     ``S0 = sum w``, ``x_mean = sum w x / S0``, ``v = sum w x^2 / S0 - x_mean^2`` with
     ``x = I_i - I_c``; then ``a = (1 + x_mean^2 / v*) / S0`` and ``b = -x_mean / (v* S0)``,
     ``v* = max(v, var_floor)``, so that ``sum_i l_{i|c} = 1`` exactly and
@@ -338,7 +340,7 @@ def _target_taps(
     def weight(dy: int, dx: int, L: torch.Tensor, L_pad: torch.Tensor, m: torch.Tensor, m_pad: torch.Tensor) -> torch.Tensor:
         if dy == r and dx == r:  # w_{c|c} = 1 (also for masked centres: they keep their own value)
             return torch.ones_like(m)
-        d2 = (L_pad[..., dy : dy + H, dx : dx + W] - L).square()  # paper 002, Eq. 9
+        d2 = (L_pad[..., dy : dy + H, dx : dx + W] - L).square()  # Gu et al. 2024, Eq. 9
         if weight_mode == "rgb":
             d2 = d2.sum(1, keepdim=True)
         inside = m_pad[..., dy : dy + H, dx : dx + W] if mask is None else m * m_pad[..., dy : dy + H, dx : dx + W]
@@ -356,7 +358,7 @@ def _target_taps(
             x = I_pad[..., dy : dy + H, dx : dx + W] - I
             Sx.addcmul_(w, x)
             Sxx.addcmul_(w, x.square())
-    if order == 0:  # Nadaraya-Watson ablation (paper 002, Sec. 4.1, Fig. 4)
+    if order == 0:  # Nadaraya-Watson ablation (Gu et al. 2024, Sec. 4.1, Fig. 4)
         a, b = 1.0 / S0, None
     else:
         x_mean = Sx / S0
@@ -374,7 +376,7 @@ def _target_taps(
         if b_d is None:
             return w * a_d
         x = I_pad_d[..., dy : dy + H, dx : dx + W] - I_d
-        return torch.addcmul(a_d, b_d, x).mul_(w)  # l_{c+delta|c}, paper 002, Eq. 11
+        return torch.addcmul(a_d, b_d, x).mul_(w)  # l_{c+delta|c}, Gu et al. 2024, Eq. 11
 
     return _Taps(r, (H, W), tap)
 
@@ -411,9 +413,9 @@ def _check_options(order: int, weight_mode: str, var_floor: float, clamp_min: fl
 def _finish(out: torch.Tensor, clamp_min: float | None, like: torch.Tensor) -> torch.Tensor:
     """Output clamp ``max(clamp_min, f^)`` and the caller's layout."""
     if clamp_min is not None:
-        # [code] clamps with dr.maximum(0.0, f^), whose derivative w.r.t. f^ is 1 at equality: so
-        # the gradient is 1[f^ >= clamp_min]. A window whose render is exactly 0 under a non-black
-        # target (e.g. a reflectance at its lower bound) then still gets a signal.
+        # the authors' code clamps with dr.maximum(0.0, f^), whose derivative w.r.t. f^ is 1 at
+        # equality: so the gradient is 1[f^ >= clamp_min]. A window whose render is exactly 0 under
+        # a non-black target (e.g. a reflectance at its lower bound) then still gets a signal.
         out = torch.where(out >= clamp_min, out, out.new_tensor(clamp_min))
     return out.squeeze(0) if like.dim() == 3 else out
 
@@ -433,7 +435,7 @@ def target_aware_denoise(
     max_cache_bytes: int = 2**30,
     check_finite: bool = True,
 ) -> torch.Tensor:
-    """Denoise a Monte Carlo render by local linear regression on the target (paper 002).
+    """Denoise a Monte Carlo render by local linear regression on the target (Gu et al. 2024).
 
     ``f^_c = sum_{i in window(c)} l_{i|c} f~_i`` with ``l`` from the weighted least-squares fit
     ``f~_i ~ a_c + b_c (I_i - I_c)`` (Eqs. 8-11), weights ``exp(-||log(1+I_i) - log(1+I_c)||^2

@@ -1,9 +1,11 @@
 """Pixel pmfs from per-pixel factor maps, and i.i.d. draws from them (pure torch).
 
-The adaptive pmf of paper 000 is ``p ∝ sqrt(p1 · p2)`` (paper Eq. 8, spec E6), post-processed
-as the spec's Algorithm: each factor map is denoised (Gaussian blur) at its Stage-1 resolution,
-upsampled bilinearly to the full resolution, combined over multi-resolution levels (E11, A6),
-normalised and mixed with the uniform pmf (E15) so that every pixel keeps ``p >= alpha / m``.
+The adaptive pmf of *Image-space Adaptive Sampling for Fast Inverse Rendering* (SIGGRAPH 2025),
+"the paper" below, is ``p ∝ sqrt(p1 · p2)`` (paper Eq. 8), post-processed as its Algorithm 1:
+each factor map is denoised (Gaussian blur) at its Stage-1 resolution, upsampled bilinearly to
+the full resolution, combined over multi-resolution levels (Eq. 18, with our choice of level
+weights), normalised and mixed with the uniform pmf (our addition) so that every pixel keeps
+``p >= alpha / m``.
 """
 from __future__ import annotations
 
@@ -38,8 +40,9 @@ def _finite_or_zero(name: str, value: torch.Tensor) -> torch.Tensor:
 
 
 def denoise_upsample(value: torch.Tensor, size: tuple[int, int], sigma: float) -> torch.Tensor:
-    """Blur ``(V, h, w)`` with a Gaussian of ``sigma`` low-res pixels (5x5, replicate border;
-    spec A5), then upsample bilinearly to ``size``; clamped to >= 0."""
+    """Blur ``(V, h, w)`` with a Gaussian of ``sigma`` low-res pixels (5x5, replicate border; a
+    CPU stand-in for the paper's learned denoiser and upsampler), then upsample bilinearly to
+    ``size``; clamped to >= 0."""
     x = value.unsqueeze(1)  # (V, 1, h, w)
     if sigma > 0 and min(x.shape[-2:]) > 1:
         ksize = 2 * max(1, math.ceil(2 * sigma)) + 1
@@ -68,12 +71,12 @@ def pmf_from_maps(
     """The pixel pmf of factor maps ``p1`` (loss-adjoint second moments) and ``p2`` (derivative
     second moments), one map per multi-resolution level, finest first.
 
-    Level ``d``'s unnormalised pmf is ``q_d = sqrt(up(blur(p1_d)) * up(blur(p2_d)))`` (paper 000,
+    Level ``d``'s unnormalised pmf is ``q_d = sqrt(up(blur(p1_d)) * up(blur(p2_d)))`` (paper
     Eq. 8; ``p2 = None`` gives the Eq. 5 baseline ``q_d = sqrt(up(blur(p1_d)))``). Levels combine
     as ``q = sum_d w_d q_d / sum(q_d)`` with ``w_d = 1/(D+1)`` (``"equal"``) or ``w_d ∝ 4^d``
     (``"paper"``: the literal sum of normalised coarse pmfs broadcast to their blocks, Eq. 18).
     A level whose maps are all zero or not finite contributes the uniform pmf. Finally
-    ``p = (1 - alpha) q + alpha / m`` (spec E15).
+    ``p = (1 - alpha) q + alpha / m`` (a defensive mixture: ``p >= alpha / m``).
 
     Args:
         p1, p2: ``(V, h_d, w_d)`` float maps (or lists of them, one per level).
@@ -85,8 +88,8 @@ def pmf_from_maps(
 
     Returns:
         ``(pmf, stats)``: pmf ``(V, H, W)`` float64 summing to 1; stats with the predicted
-        gain ``g = m sum_j a_j / (sum_j sqrt a_j)^2`` of the finest level (E6) and the number
-        of levels that fell back to uniform.
+        gain ``g = m sum_j a_j / (sum_j sqrt a_j)^2`` of the finest level (uniform over optimal
+        second moment, from Eq. 8) and the number of levels that fell back to uniform.
     """
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must be in [0, 1], got {alpha}")
@@ -111,7 +114,7 @@ def pmf_from_maps(
         if p2_levels is not None:
             a2 = _finite_or_zero("p2", _check_map("p2", p2_levels[d], views))
             q = q * denoise_upsample(a2, size, sigma)
-        q = q.sqrt()  # paper 000, Eq. 8 (A1: the square root the extracted text drops)
+        q = q.sqrt()  # paper Eq. 8 (the square root, as in Algorithm 1 line 8)
         level = _normalised(q)
         if level is None:
             fallbacks += 1
@@ -121,7 +124,7 @@ def pmf_from_maps(
             gain = float(m * a.sum() / q.sum().square())
         combined += weight * level
     combined /= sum(weights)
-    pmf = (1.0 - alpha) * combined + alpha / m  # spec E15
+    pmf = (1.0 - alpha) * combined + alpha / m  # defensive mixture with the uniform pmf
     return pmf / pmf.sum(), {"predicted_gain": gain, "uniform_levels": float(fallbacks)}
 
 
@@ -136,8 +139,8 @@ def cumulative(pmf: torch.Tensor) -> torch.Tensor:
 def draw(
     cdf: torch.Tensor, count: int, generator: torch.Generator, pdf: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``count`` i.i.d. indices from the pmf of ``cdf`` by inverse CDF (spec A3, §5.4: unlike
-    ``torch.multinomial``, no 2^24 category limit), and their realised probabilities
+    """``count`` i.i.d. indices from the pmf of ``cdf`` by inverse CDF on a float64 cumsum
+    (unlike ``torch.multinomial``, no 2^24 category limit), and their realised probabilities
     ``cdf[j] - cdf[j-1]`` (the pmf the draws really follow). ``pdf``: those differences
     precomputed (``torch.diff(cdf, prepend=0)``, the same numbers), read with one gather."""
     u = torch.rand(count, generator=generator, dtype=torch.float64)

@@ -1,4 +1,7 @@
-"""Image-space pixel samplers (paper 000): which pixels to render at each optimisation step.
+"""Image-space pixel samplers: which pixels to render at each optimisation step.
+
+The adaptive sampler is that of *Image-space Adaptive Sampling for Fast Inverse Rendering*
+(SIGGRAPH 2025), "the paper" below; equation numbers are the paper's.
 
 Three strategies share one class, :class:`PixelSampler`; they differ only in the pmf:
 
@@ -15,7 +18,7 @@ class                        pmf ``p_j``                          Stage 1 (every
 ``w_n = 1 / (N m p_{j_n})``: for any per-pixel loss ``l`` over the ``m`` pixels,
 ``(w * l[index]).sum()`` is an unbiased estimate of ``l.mean()``. Rendering the drawn pixels
 with :func:`torchir.functions.render_pixels` (whose gradient pass replays independent paths,
-spec E3/E16) makes the gradient of that sum an unbiased estimate of the full-image gradient.
+as Eq. 4 requires) makes the gradient of that sum an unbiased estimate of the full-image gradient.
 The pmf only steers sampling: however rough Stage 1 is, the estimate stays unbiased.
 """
 from __future__ import annotations
@@ -74,10 +77,10 @@ def sampled_loss(
     spp: int = 1,
     spp_grad: int | None = None,
 ) -> SampledLoss:
-    """The importance-weighted loss of one pixel batch (paper 000, E16).
+    """The importance-weighted loss of one pixel batch.
 
     The drawn pixels are rendered with :func:`torchir.functions.render_pixels` (the pixels of
-    every view in one wavefront), whose gradient pass replays independent paths (E3), and
+    every view in one wavefront), whose gradient pass replays independent paths (Eq. 4), and
     scored with the per-pixel loss:
     ``loss = sum_n w_n l_n``, with ``l_n`` from ``loss.pixel_terms``. Backpropagating it gives
     an unbiased estimate of the gradient of ``loss`` over the full images of ``views``.
@@ -141,7 +144,7 @@ def _check_budget(budget: object, pixel_count: int) -> int:
 def _stage1_grids(size: tuple[int, int], scale: int, min_side: int, levels: int) -> list[tuple[int, int]]:
     """Stage-1 grid sizes, finest first: level 0 is ``size / scale`` but no smaller than
     ``min_side`` (nor than the image); level ``d`` halves it ``d`` times while its shorter side
-    stays >= 4 px (spec A4, §3)."""
+    stays >= 4 px."""
     h, w = size
     factor = min(float(scale), max(1.0, min(h, w) / min_side))
     h0, w0 = max(1, round(h / factor)), max(1, round(w / factor))
@@ -170,15 +173,15 @@ class PixelSampler:
             with replacement). Over all processes when distributed (:meth:`distribute`).
         refresh_every: steps between Stage-1 refreshes (``R``; alias ``update_every``).
         levels: multi-resolution depth ``D`` (capped so the coarsest grid has sides >= 4 px).
-        alpha: weight of the uniform pmf mixed in, in ``[0, 1]`` (spec E15).
+        alpha: weight of the uniform pmf mixed in, in ``[0, 1]`` (so every ``p_j >= alpha / m``).
         seed: seed of the index draws and derivative probes (a ``torch.Generator``) and of
             Stage 1's paths.
         resolution: ``(H, W)`` of every view (default: the scene's).
         views: number of views (default: the scene's sensor count).
-        scale: Stage-1 downsampling factor ``s`` (spec A4).
+        scale: Stage-1 downsampling factor ``s`` (the paper leaves it open).
         min_side: smallest Stage-1 side at level 0, in pixels (default 32).
         stage1_spp: one-path passes per Stage-1 pixel (``S``).
-        multires: level weighting, ``"equal"`` or ``"paper"`` (spec A6).
+        multires: level weighting, ``"equal"`` or ``"paper"`` (the literal sum of Eq. 18).
         sigma: Stage-1 denoising blur in low-res pixels.
         fd_step: finite-difference step of the derivative probe (see
             :func:`torchir.functions.probe.probe_pixels`).
@@ -384,14 +387,14 @@ class PixelSampler:
         views: Sequence[int] | None = None,
         step: int = 0,
     ) -> None:
-        """Refresh the pmf (Stage 1, paper 000 Algorithm 1 lines 2-9) at ``step``.
+        """Refresh the pmf (Stage 1, paper Algorithm 1 lines 2-9) at ``step``.
 
         Renders each view on the Stage-1 grids with ``stage1_spp`` one-path passes,
-        ``p1 = mean_i sum_c (∂ℓ/∂I_c)^2`` against the area-averaged target (E10, E13, E14;
-        ``loss`` is the per-pixel loss, default L2), and for the adaptive strategy
+        ``p1 = mean_i sum_c (∂ℓ/∂I_c)^2`` against the area-averaged target (summed over
+        channels; ``loss`` is the per-pixel loss, default L2), and for the adaptive strategy
         ``p2 = mean_i sum_c t_c^2`` with ``t`` the derivative along a Rademacher direction
-        over all parameters in ``params`` (E12), then builds the pmf with
-        :meth:`update_from_maps`.
+        over all parameters in ``params`` (our stand-in for the custom AD pass of the paper's
+        Sec. 4.3), then builds the pmf with :meth:`update_from_maps`.
 
         Args:
             params: ``{name: value}`` of the optimised parameters (detached internally).
@@ -432,7 +435,7 @@ class PixelSampler:
                 target = F.interpolate(targets[i][None].float(), size=(h, w), mode="area")
                 p1[d][v] = _adjoint_second_moment(loss, radiance[d], target)
                 if p2 is not None and derivative is not None:
-                    p2[d][v] = derivative[d].double().square().sum(1).mean(0)  # E13/E14
+                    p2[d][v] = derivative[d].double().square().sum(1).mean(0)  # p2 = mean_i sum_c t_c^2
         if self.world > 1:
             _sum_over_processes(p1 + (p2 or []))  # each map is non-zero in one process only: the sums are exact
         self.update_from_maps(p1, p2)
@@ -458,7 +461,7 @@ class PixelSampler:
 
     # -------------------------------------------------------------------- diagnostics
     def diagnostics(self) -> dict[str, float]:
-        """Scalars to log: predicted gain (E6: ``m sum a / (sum sqrt a)^2`` with ``a = p1 p2``
+        """Scalars to log: predicted gain (from Eq. 8: ``m sum a / (sum sqrt a)^2`` with ``a = p1 p2``
         of the finest level; for the Eq. 5 sampler ``a = p1``, i.e. assuming equal derivative
         moments everywhere, so it overstates that sampler's real gain), effective sample size
         fraction and largest weight (relative to uniform) of the last batch, Stage-1 seconds
@@ -525,7 +528,7 @@ def _check_loss(loss: nn.Module | None) -> nn.Module:
 
 
 def _adjoint_second_moment(loss: nn.Module, radiance: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """``mean_i sum_c (∂ℓ/∂I_c)^2`` over the passes of ``radiance`` ``(S, C, h, w)`` (E14);
+    """``mean_i sum_c (∂ℓ/∂I_c)^2`` over the passes of ``radiance`` ``(S, C, h, w)``;
     any per-pixel loss, by autograd (the loss's overall scale cancels in the pmf)."""
     image = radiance.detach().requires_grad_()
     with torch.enable_grad():
@@ -541,7 +544,7 @@ class UniformPixelSampler(PixelSampler):
 
 
 class LossPixelSampler(PixelSampler):
-    """The loss-proportional baseline of Su & Gkioulekas (paper 000, Eq. 5):
+    """The loss-proportional baseline of Su & Gkioulekas (paper Eq. 5):
     ``p_j ∝ sqrt(E[(∂L/∂I_j)^2])``, estimated by the same Stage 1 without the derivative probe."""
 
     strategy = "loss"
@@ -549,8 +552,9 @@ class LossPixelSampler(PixelSampler):
 
 
 class AdaptivePixelSampler(PixelSampler):
-    """Variance-aware adaptive pixel sampling (paper 000): ``p_j ∝ sqrt(p1_j p2_j)`` (Eq. 8),
-    ``p1`` the loss adjoint's and ``p2`` the pixel derivatives' second moments (E6, E8)."""
+    """Variance-aware adaptive pixel sampling: ``p_j ∝ sqrt(p1_j p2_j)`` (paper Eq. 8), ``p1`` the
+    loss adjoint's and ``p2`` the pixel derivatives' second moments (``p2`` summed over the
+    parameters, Eqs. 10-12)."""
 
     strategy = "adaptive"
     uses_stage1 = True

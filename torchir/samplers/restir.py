@@ -1,4 +1,7 @@
-"""``ReSTIRSampler``: reservoirs reused across gradient steps (paper 004) for ``render``.
+"""``ReSTIRSampler``: reservoirs reused across gradient steps (Wang et al. 2023) for ``render``.
+
+Wang et al. 2023 is "Amortizing Samples in Physics-Based Inverse Rendering using ReSTIR"
+(SIGGRAPH Asia 2023), "the paper" below.
 
 The sampler owns the per-sensor reservoir state and the Dr.Jit integrator that reads and
 updates it; ``render(scene, params, spp, seed, sampler=r)`` then renders direct illumination
@@ -6,7 +9,7 @@ by ReSTIR and back-propagates its interior-term gradient (W constant, only ``Le 
 differentiated). Reservoirs are keyed by world-space shading points (shape, primitive,
 barycentrics), so they survive parameter changes and every sensor keeps its own chain.
 
-Presets (one flag for the paper's equal-time comparisons, spec §6.3):
+Presets (one flag for the paper's equal-time comparisons):
 
 =================  ====================================================================
 ``preset``         meaning
@@ -99,7 +102,8 @@ class ReSTIRSampler:
         return int(mi.sample_tea_32(seed, self.seed)[0])
 
     def check_gradients(self, grad_names) -> None:
-        """Refuse light-placement parameters; warn once about shape parameters (stage v2)."""
+        """Refuse light-placement parameters; warn once about shape parameters (what their boundary
+        terms reuse, and a small bias)."""
         # ReSTIR differentiates the path contribution of the reservoirs' light samples, which are
         # not rebuilt when a light moves: light placement gets no gradient (it failed inside Dr.Jit).
         emitters = {e.id() for e in self.scene.mi_scene.emitters()}
@@ -125,7 +129,7 @@ class ReSTIRSampler:
                 + edges
                 + "silhouettes and the shading-horizon bands of smooth meshes without reuse, the rest from "
                 "direct_projective; the temporal support test "
-                "uses the current geometry (small bias, spec D7)",
+                "uses the current geometry, not the previous step's (a small bias)",
             )
 
     # ------------------------------------------------------------------ public state API

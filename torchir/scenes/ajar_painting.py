@@ -1,6 +1,6 @@
 """``ajar_painting``: a painting lit through the narrow gap of a nearly closed door (Veach-Ajar-like).
 
-For: ReSTIR (paper 004, Fig. 11 "Painting"): light selection is hard because the brightest
+For: ReSTIR (Wang et al. 2023, Fig. 11 "Painting"): light selection is hard because the brightest
 light is almost entirely hidden. The camera looks at the back wall of a room, most of the image
 being a diffuse painting with a ``texture x texture`` albedo. The room's right wall has a door
 that is nearly closed: it leaves a vertical slit ``door`` units wide (the painting is 2 units

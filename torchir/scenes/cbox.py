@@ -8,7 +8,7 @@ Typical unknowns: the wall albedos ``red.reflectance.value``, ``green.reflectanc
 Option ``canvas=n`` (n > 0) hangs a 0.6 x 0.6 canvas with an n x n bilinear albedo texture
 (``canvas.bsdf.reflectance.data``, uniform random in [0.05, 0.95], seed ``canvas_seed``) on the
 back wall: a small textured region (~3% of the image), the adaptive sampler's benchmark scene
-(spec adaptive-sampling §6.3).
+(``torchir.bench.adaptive``).
 """
 from __future__ import annotations
 

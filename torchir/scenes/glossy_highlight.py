@@ -1,9 +1,11 @@
 """``glossy_highlight``: a shiny metal sphere whose only visible feature is a point light's highlight.
 
-For: the locally orderless images (LOI) loss, benchmark B1 (paper 003's Envlight / Fig. 1
-analogue): recover the light's azimuth from where the highlight sits. The highlight is a few
-pixels wide and moves across the sphere with the azimuth, so a pixel-wise loss sees no gradient
-once rendered and reference highlights stop overlapping.
+For: the locally orderless images (LOI) loss and its benchmark ``torchir.bench.loi`` (an analogue
+of the "Envlight" scene and Fig. 1 of Mehta et al. 2025, "Locally Orderless Images for
+Optimization in Differentiable Rendering"): recover the light's azimuth from where the
+highlight sits. The highlight is a few pixels wide and moves across the sphere with the
+azimuth, so a pixel-wise loss sees no gradient once rendered and reference highlights stop
+overlapping.
 Geometry: a unit sphere (``roughconductor``, aluminium, GGX alpha 0.08) and nothing else; a
 ``point`` light on a circle of radius 4 around it at elevation 0.35 rad; the camera looks at
 the sphere from +z, so azimuth 0 puts the highlight just above the centre.

@@ -1,12 +1,13 @@
 """``many_lights``: a textured canvas lit by hundreds of point lights through a few ceiling holes.
 
-For: ReSTIR (paper 004, many-light direct illumination, spec T-B1): light selection is hard
-because almost every light sample is occluded. The camera looks straight down at a diffuse
-canvas with a ``texture x texture`` albedo. ``lights`` point lights of random intensity are
-scattered above an occluding ceiling (a 12 x 12 grid of 0.5 x 0.5 tiles at height 2, above
-the camera, out of its view) from which ``holes`` tiles are missing; a canvas point sees a
-light only through a hole, about 10 % of the lights with the defaults, and every light
-reaches only part of the canvas, so the canvas is lit by a soft patchwork of light.
+For: ReSTIR (Wang et al. 2023, many-light direct illumination; a benchmark scene of
+``torchir.bench.restir``): light selection is hard because almost every light sample is
+occluded. The camera looks straight down at a diffuse canvas with a ``texture x texture``
+albedo. ``lights`` point lights of random intensity are scattered above an occluding ceiling (a
+12 x 12 grid of 0.5 x 0.5 tiles at height 2, above the camera, out of its view) from which
+``holes`` tiles are missing; a canvas point sees a light only through a hole, about 10 % of the
+lights with the defaults, and every light reaches only part of the canvas, so the canvas is lit
+by a soft patchwork of light.
 Light transport: direct illumination only (``prb`` with ``max_depth=2``; ReSTIR renders the
 same light transport through ``render(..., sampler=ReSTIRSampler(scene))``).
 Typical unknown: the albedo texture ``canvas.bsdf.reflectance.data`` of shape (T, T, 3).

@@ -1,6 +1,6 @@
 """``occluded_lights``: a blocker's shadow on a textured floor, one small and one hidden large light.
 
-For: ReSTIR (paper 004, Figs. 9-10 "Tree"): an object seen only through its cast shadow, lit
+For: ReSTIR (Wang et al. 2023, Figs. 9-10 "Tree"): an object seen only through its cast shadow, lit
 by one small area light and one large area light that is mostly hidden. The camera looks
 straight down at a diffuse floor with a ``texture x texture`` albedo. A small bright square
 light (``small_light``) low on the left casts the sharp shadow of ``blocker``, a thin box

@@ -1,14 +1,17 @@
 """``oxalis_lite``: a textured canvas under two bright spot lights and many useless lights.
 
-For: ReSTIR (paper 004, spec T-B1/T-B2 "oxalis-lite", decision D10: two spot lights).
+For: ReSTIR: a small version of the "Oxalis" scene of Wang et al. 2023 (Fig. 1), a benchmark
+scene of ``torchir.bench.restir``; two spot lights, as the paper's text says (its Fig. 1
+caption says "several").
 Light transport: direct illumination only (``prb`` with ``max_depth=2``; ReSTIR renders the
 same light transport through ``render(..., sampler=ReSTIRSampler(scene))``). A diffuse canvas
 with a ``texture x texture`` albedo is lit by two bright, narrow spot lights and
 ``dim_lights`` dim point lights; a leaf-shaped occluder casts a shadow, and
 ``hidden_lights`` bright point lights sit behind the canvas and an occluding wall: they take
 light samples but contribute nothing, which is what makes light selection hard.
-``emitter_pdf="power"`` sets every emitter's ``sampling_weight`` to its power (D4), so the
-hidden lights take most samples; ``"uniform"`` samples every emitter equally.
+``emitter_pdf="power"`` sets every emitter's ``sampling_weight`` to its power (our reading of
+the paper's light-candidate pdf proportional to emitted radiance), so the hidden lights take
+most samples; ``"uniform"`` samples every emitter equally.
 Typical unknown: the albedo texture ``canvas.bsdf.reflectance.data`` of shape (T, T, 3).
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``pig``: a smooth diffuse blob above a floor, lit by one area light (paper 004, Fig. 8 "Pig").
+"""``pig``: a smooth diffuse blob above a floor, lit by one area light (Wang et al. 2023, Fig. 8 "Pig").
 
 For: shape derivatives of the camera-ray term (the derivative image w.r.t. the blob's vertical
 displacement), and the primary-vertex forms compared in ``torchir.bench.restir_antithetic``.

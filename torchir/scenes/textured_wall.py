@@ -1,7 +1,8 @@
 """``textured_wall``: the back wall of an empty Cornell box, textured, lit mostly by bounced light.
 
-For: the target-aware denoiser (paper 002) benchmark. The camera sees only the back wall, whose
-BSDF carries a ``texture x texture`` map (smooth ramps, a disc, a rectangle, stripes).
+For: the benchmark of the target-aware denoiser (Gu et al. 2024, "Target-Aware Image Denoising
+for Inverse Monte Carlo Rendering"). The camera sees only the back wall, whose BSDF carries a
+``texture x texture`` map (smooth ramps, a disc, a rectangle, stripes).
 ``lighting="indirect"`` (default) moves the area light down 0.25 and turns it to face the
 ceiling, so the wall receives no direct light: with ``prb`` and ``max_depth=5`` (the wall sees
 the light after one bounce off the ceiling and walls, and the second bounce still adds ~20 %),

@@ -91,7 +91,9 @@ class InverseRenderingModule(pl.LightningModule):
             as ``SAMPLERS[type](scene, **options)``. A pixel sampler (``uniform``, ``loss``,
             ``adaptive``) switches to pixel-sampling mode: each step renders only the drawn
             pixels with :func:`~torchir.functions.render_pixels` and minimises the importance-
-            weighted loss (paper 000, E16), refreshing the sampler's pmf on its schedule.
+            weighted loss, whose gradient is the pixel-sampled estimator of Eq. 4 of Yan et al. 2025,
+            "Image-space Adaptive Sampling for Fast Inverse Rendering", refreshing the sampler's pmf
+            on its schedule.
         spp, spp_grad: samples per pixel of the primal image and of the gradient pass.
         seed: base seed; step ``t`` renders view ``v`` with a seed derived from (seed, t, v) only,
             so runs, resumed runs and multi-process runs see the same random numbers.
@@ -332,9 +334,10 @@ class InverseRenderingModule(pl.LightningModule):
     def sampled_loss(
         self, views: list[int], targets: torch.Tensor, step: int, values: Optional[dict[str, torch.Tensor]] = None
     ) -> tuple[torch.Tensor, torch.Tensor, int]:
-        """The importance-weighted loss of one pixel batch (paper 000, E16), its weighted squared
-        error (for logging) and the number of paths traced (``values``: the current
-        :meth:`scene_values`, when already computed)."""
+        """The importance-weighted loss of one pixel batch (each drawn pixel's loss weighted by its
+        inverse draw probability, so that its gradient is the estimator of Yan et al. 2025, Eq. 4),
+        its weighted squared error (for logging) and the number of paths traced (``values``: the
+        current :meth:`scene_values`, when already computed)."""
         from ..samplers import sampled_loss
 
         batch = self.sampler.sample(views)
