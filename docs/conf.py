@@ -12,7 +12,7 @@ project = "torchir"
 extensions = ["myst_parser", "sphinx.ext.autodoc", "sphinx.ext.napoleon", "sphinx.ext.viewcode"]
 source_suffix = {".md": "markdown"}
 root_doc = "index"
-exclude_patterns = ["_build"]
+exclude_patterns = ["_build", "results"]  # results/: benchmark runs, rendered into measured.md
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
 napoleon_google_docstring = True
@@ -21,3 +21,20 @@ myst_heading_anchors = 3
 html_theme = "alabaster"
 autodoc_inherit_docstrings = False  # Lightning's own docstrings are not ours to render
 suppress_warnings = ["myst.xref_missing"]  # the link back to ../README.md lies outside the site
+
+
+def _write_results_page(app) -> None:
+    """docs/measured.md from the benchmark runs kept in docs/results/ (torchir.bench.pages)."""
+    from pathlib import Path
+
+    from torchir.bench.pages import results_page
+
+    here = Path(app.srcdir)
+    page = results_page(here / "results")
+    target = here / "measured.md"
+    if not target.exists() or target.read_text() != page:  # unchanged: no rebuild of the page
+        target.write_text(page)
+
+
+def setup(app) -> None:
+    app.connect("builder-inited", _write_results_page)

@@ -7,7 +7,7 @@
 # TEST_SECONDS bounds it), then `torchir bench overhead --quick` and the ReSTIR and LOI quick
 # comparisons, each within its own time limit. Everything lands in $OUT (at most 8 files):
 # report.md (the summary), tests.log, bench.log and the benchmarks' results JSON.
-# Rehearse it here on the CPU: TORCHIR_VARIANT=llvm_ad_rgb TESTS=tests/test_render.py bash scripts/gpu_check.sh
+# Rehearse it here on the CPU: TORCHIR_VARIANT=llvm_ad_rgb TESTS=tests/functions/test_render.py bash scripts/gpu_check.sh
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUTDIR=${OUT:-results/gpu_check}

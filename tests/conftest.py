@@ -31,8 +31,7 @@ import pytest  # noqa: E402
 import torch  # noqa: E402
 
 import torchir
-
-RES = 16  # every render test uses 16x16 so the kernels compile once
+from tests.helpers import RES
 
 # The longest files (worker seconds, measured with the slow tests left out), run first so that
 # `-n 2 --dist loadfile` ends with short files on both workers instead of one worker finishing a
@@ -112,8 +111,11 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem):
 
 @pytest.fixture(autouse=True)
 def _seeded(request: pytest.FixtureRequest) -> None:
-    """RNG states fixed by the test's id: its random draws do not depend on what ran before it."""
-    seed = zlib.crc32(request.node.nodeid.encode())
+    """RNG states fixed by the test's id: its random draws do not depend on what ran before it.
+    The id is taken with the file as ``tests/<file name>``, whatever folder of tests/ holds it, so
+    that moving a file between folders keeps its tests' draws (file names are unique in tests/)."""
+    file, sep, rest = request.node.nodeid.partition("::")
+    seed = zlib.crc32(f"tests/{os.path.basename(file)}{sep}{rest}".encode())
     torch.manual_seed(seed)
     np.random.seed(seed)
     random.seed(seed)
@@ -225,3 +227,11 @@ def settled_registry():
 @pytest.fixture()
 def red(cbox) -> torch.Tensor:
     return cbox.get("red.reflectance.value").requires_grad_()
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory) -> dict[str, dict[str, object]]:
+    """The meshes as exporters write them (OBJ and PLY files of ``torchir.bench.exported_meshes``)."""
+    from torchir.bench.exported_meshes import write_all
+
+    return write_all(tmp_path_factory.mktemp("exported"))

@@ -1,12 +1,31 @@
-"""Small modules the training tests refer to by class path, and shared test checks."""
+"""What more than one test module uses: small modules the training tests refer to by class path,
+shared checks and constants, the training runs' paths, and the "wall" scene of the
+``torchir.functions`` tests. Test modules import from here (``from tests.helpers import ...``),
+never from one another; fixtures live in the conftest.py files."""
 from __future__ import annotations
 
+import math
 import os
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
+import mitsuba as mi
+import pytest
 import torch
 from torch import nn
+
+from torchir.scenes import _common
+
+ROOT = Path(__file__).resolve().parents[1]  # the repository
+RES = 16  # every render test uses 16x16 so the kernels compile once
+
+
+def raised_message(exc, fn, *args, **kw) -> str:
+    """The message of the ``exc`` that ``fn(*args, **kw)`` raises (the call must raise it)."""
+    with pytest.raises(exc) as info:
+        fn(*args, **kw)
+    return str(info.value)
 
 
 def assert_warned_at(record, test_file: str) -> None:
@@ -68,3 +87,98 @@ def run_in_fresh_process(code: str, timeout: float = 300.0) -> str:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
     assert out.returncode == 0, out.stderr[-3000:]
     return out.stdout
+
+
+# ------------------------------------------------------------------------------ training runs
+def _run_dir(tmp_path: Path, name: str = "quickstart", version: int = 0) -> Path:
+    return tmp_path / name / f"version_{version}"
+
+
+def _latents(ckpt: Path) -> dict[str, torch.Tensor]:
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    return {k: v for k, v in state.items() if k.endswith("latent")}
+
+
+# ------------------------------------------------------------------ the wall (tests/functions)
+# The zero-variance "wall" scene of tests/functions/test_functions_core.py and
+# test_functions_pixels.py (its fixtures: tests/functions/conftest.py).
+H, W = 4, 6
+TEX = "wall.bsdf.reflectance.data"
+SUN = "sun.irradiance.value"
+
+
+def albedo_texture(h: int = H, w: int = W) -> torch.Tensor:
+    """(h, w, 3): every texel distinct in R, columns in G, rows in B, all in (0, 1)."""
+    y, x = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    return torch.stack([(y * w + x + 1) / (h * w + 1), (x + 1) / (w + 1), (y + 1) / (h + 1)], -1).float()
+
+
+def wall_dict(rfilter: str = "box", integrator: str = "prb", channels: int = 3, sensors: int = 1) -> dict:
+    """The wall; ``sensors=2`` adds sensor 1, the same camera rolled by 180 degrees (pixel (y, x)
+    sees texel (y, W-1-x))."""
+    tex = albedo_texture()
+    if channels == 1:
+        tex = tex[..., :1].contiguous()
+    film = _common.film(H, W)
+    film["rfilter"] = {"type": rfilter}
+    scene = {
+        "type": "scene",
+        "integrator": {"type": integrator, "max_depth": 3},
+        "sensor": {
+            "type": "perspective",
+            "fov": 2 * math.degrees(math.atan(1 / 5)),  # half-width 1 at distance 5
+            "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+            "film": film,
+            "sampler": {"type": "independent"},
+        },
+        "wall": {
+            "type": "rectangle",
+            "to_world": mi.ScalarTransform4f().scale([1.0, H / W, 1.0]),
+            "bsdf": {
+                "type": "diffuse",
+                "reflectance": {"type": "bitmap", "data": mi.TensorXf(tex.numpy()), "filter_type": "nearest", "raw": True},
+            },
+        },
+        "sun": {"type": "directional", "direction": [0, 0, -1], "irradiance": {"type": "rgb", "value": math.pi}},
+    }
+    if sensors == 2:
+        rolled = dict(scene["sensor"], film=dict(film), sampler={"type": "independent"})
+        rolled["to_world"] = mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, -1, 0])
+        scene["sensor_1"] = rolled
+    return scene
+
+
+def as_image(texture: torch.Tensor) -> torch.Tensor:
+    """(C, H, W) image of the wall with albedo ``texture`` (H, W, C): rows flipped."""
+    return texture.flip(0).permute(2, 0, 1)
+
+
+def as_image1(texture: torch.Tensor) -> torch.Tensor:
+    """(C, H, W) image of the wall seen by the rolled sensor 1: columns flipped."""
+    return texture.flip(1).permute(2, 0, 1)
+
+
+def weights(seed: int = 0, shape=(3, H, W)) -> torch.Tensor:
+    return torch.rand(*shape, generator=torch.Generator().manual_seed(seed)) + 0.5
+
+
+def tea(v0: int, v1: int, rounds: int = 4) -> tuple[int, int]:
+    """The TEA hash (Wheeler & Needham; Zafar et al. 2010) as Mitsuba's sample_tea_32, in Python."""
+    mask, total = 0xFFFFFFFF, 0
+    for _ in range(rounds):
+        total = (total + 0x9E3779B9) & mask
+        v0 = (v0 + ((((v1 << 4) & mask) + 0xA341316C) ^ ((v1 + total) & mask) ^ ((v1 >> 5) + 0xC8013EA4))) & mask
+        v1 = (v1 + ((((v0 << 4) & mask) + 0xAD90777D) ^ ((v0 + total) & mask) ^ ((v0 >> 5) + 0x7E95761E))) & mask
+    return v0, v1
+
+
+def raises(error: type[Exception], message: str):
+    """pytest.raises matching the whole message."""
+    if error is KeyError:  # str(KeyError) quotes its argument
+        return pytest.raises(error, match="^" + re.escape(repr(message)) + "$")
+    return pytest.raises(error, match="^" + re.escape(message) + "$")
+
+
+def close(a: torch.Tensor, b: torch.Tensor, tol: float = 2e-6) -> None:
+    torch.testing.assert_close(a, b, rtol=tol, atol=tol)

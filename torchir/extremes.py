@@ -4,7 +4,7 @@ Each :class:`Case` runs one piece (render, render_pixels, a sampler, a module, t
 step) under one condition and expects either a finite result or a specific, clear exception;
 never a crash inside Dr.Jit and never a silent NaN. Where the right value is known (a light
 switched off renders exactly zero, emission scales the image linearly, a constant pmf gives
-weights 1/N, a saturated LOI term has zero gradient, ...), the case's ``check`` verifies it. ``tests/test_extremes.py`` runs every
+weights 1/N, a saturated LOI term has zero gradient, ...), the case's ``check`` verifies it. ``tests/core/test_extremes.py`` runs every
 case in CI; ``torchir bench`` lists the matrix and its outcomes in its report.
 
 Example:

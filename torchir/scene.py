@@ -17,7 +17,6 @@ own values before their backward pass, so interleaved renders differentiate corr
 """
 from __future__ import annotations
 
-import contextlib
 import difflib
 import math
 import os
@@ -26,14 +25,17 @@ import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable
 
 import drjit as dr
 import mitsuba as mi
 import torch
 
 from . import backend
-from .welding import group_normals, mesh_weld
+from ._scene_loading import (TextureStorage, _check_texture_storage, _float_bitmaps, _integrator_spec, _override_integrator,
+                             _resolving_from)
+from ._scene_values import _is_flat_float, _is_transform, _is_vector_array, _same_layout, _torch_shape, _unbindable_hint
+from .welding import MeshWeld, group_normals, mesh_weld, weld_of
 
 __all__ = ["Scene", "ParameterInfo", "DerivedParameter"]
 
@@ -82,130 +84,13 @@ def is_geometry_key(name: str) -> bool:
     return name.rsplit(".", 1)[-1] in _GEOMETRY_KEYS
 
 
-def _is_vector_array(value: Any) -> bool:
-    """A dynamic Dr.Jit array of fixed-size float vectors (Color3f, Point3f, Vector2f, ...)."""
-    return (
-        dr.is_array_v(value)
-        and dr.depth_v(value) == 2
-        and dr.size_v(value) != dr.Dynamic
-        and dr.is_dynamic_v(value)
-        and dr.type_v(value) == dr.VarType.Float32
-        and not dr.is_matrix_v(value)
-    )
-
-
-def _is_flat_float(value: Any) -> bool:
-    return (
-        dr.is_array_v(value)
-        and dr.depth_v(value) == 1
-        and dr.is_dynamic_v(value)
-        and dr.type_v(value) == dr.VarType.Float32
-        and not dr.is_tensor_v(value)
-    )
-
-
-def _is_transform(value: Any) -> bool:
-    """A 4x4 (affine) transform such as a shape's ``to_world``, bound from torch as ``(4, 4)``."""
-    return type(value).__name__ in ("Transform4f", "AffineTransform4f")
-
-
-def _torch_shape(value: Any) -> tuple[tuple[int, ...], bool]:
-    """(torch shape, bindable) of a Mitsuba parameter value."""
-    if _is_transform(value):
-        return (4, 4), dr.width(value.matrix) == 1
-    if dr.is_tensor_v(value):
-        return tuple(value.shape), dr.type_v(value) == dr.VarType.Float32
-    if _is_flat_float(value):
-        return (dr.width(value),), True
-    if _is_vector_array(value):
-        n, k = dr.width(value), dr.size_v(value)
-        return ((k,) if n == 1 else (n, k)), True
-    if isinstance(value, (int, float, bool)):
-        return (), False
-    try:
-        import numpy as np
-
-        return tuple(np.array(value).shape), False
-    except Exception:  # noqa: BLE001 - some Mitsuba values have no array form
-        return (), False
-
-
-def _same_layout(got: tuple[int, ...], expected: tuple[int, ...]) -> bool:
-    """Shapes match, up to leading/trailing singleton axes ((3,) vs (1, 3), () vs (1,))."""
-    squeeze = lambda s: tuple(d for d in s if d != 1)  # noqa: E731
-    return got == expected or (squeeze(got) == squeeze(expected) and math.prod(got) == math.prod(expected))
-
-
-TextureStorage = Literal["float", "file"]
-
-
-def _check_texture_storage(texture_storage: str) -> None:
-    if texture_storage not in ("float", "file"):
-        raise ValueError(f"texture_storage must be 'float' or 'file', got {texture_storage!r}")
-
-
-@contextlib.contextmanager
-def _resolving_from(folder: Path):
-    """Mitsuba's file resolver looks in ``folder`` first for the duration."""
-    saved = mi.FileResolver(mi.file_resolver())
-    mi.file_resolver().prepend(str(folder.resolve()))
-    try:
-        yield
-    finally:
-        mi.Thread.thread().set_file_resolver(saved)
-
-
-def _float_bitmaps(node: Any) -> Any:
-    """A copy of a scene dict in which every file-backed ``bitmap`` texture without a ``format``
-    stores float32 (``format: "variant"``)."""
-    if not isinstance(node, Mapping):
-        return node
-    out = {k: _float_bitmaps(v) for k, v in node.items()}
-    if out.get("type") == "bitmap" and "filename" in out and "format" not in out:
-        out["format"] = "variant"
-    return out
-
-
-def _integrator_spec(spec: Mapping[str, Any]) -> dict[str, Any]:
-    """A validated ``{type: name, **properties}`` integrator override."""
-    if not isinstance(spec, Mapping) or not isinstance(spec.get("type"), str):
-        raise ValueError(f"an integrator override is {{type: name, ...properties}}, e.g. {{type: prb, max_depth: 3}}; got {spec!r}")
-    return dict(spec)
-
-
-def _override_integrator(state: Any, spec: dict[str, Any], path: Path) -> None:
-    """Replace the parsed scene's integrator node by ``spec`` (plugin name and properties)."""
-    nodes = [n for n in state.nodes if n.type == mi.ObjectType.Integrator]
-    if not nodes:
-        raise ValueError(f"{str(path)!r} has no <integrator> to override: add one to the file")
-    props = nodes[0].props
-    props.set_plugin_name(spec["type"])
-    for key in list(props.keys()):
-        props.remove_property(key)
-    for key, value in spec.items():
-        if key != "type":
-            props[key] = value
-
-
-def _unbindable_hint(name: str, type_name: str) -> str:
-    """What to do instead of binding parameter ``name`` of Mitsuba type ``type_name``."""
-    if type_name in ("TensorXu8", "TensorXf16"):
-        return (
-            f"it is a texture stored as {type_name[7:]} (an 8/16-bit image file): load the scene with "
-            f"texture_storage='float' (the default of Scene.from_file/from_dict; torchir fit uses it), or give "
-            f"the bitmap format=\"variant\" in the scene"
-        )
-    if name.endswith(".faces") or type_name.startswith(("UInt", "Int")) or "Xu" in type_name or "Xi" in type_name:
-        return "it holds integers (e.g. mesh faces or indices), which have no gradient: optimise vertex_positions or a pose instead"
-    return "torchir binds float textures/tensors, float arrays, colours, points, vectors and 4x4 transforms"
-
-
 _LIVE: weakref.WeakSet = weakref.WeakSet()
+EAGER_WELD_VERTICES = 250_000  # meshes up to this size are welded when the scene loads (larger: when first asked)
 
 
 def live_scenes() -> list[Scene]:
     """The torchir scenes alive in this process (the frozen passes guard their buffers:
-    :mod:`torchir.functions._replay_guard`)."""
+    :mod:`torchir._frozen`)."""
     return list(_LIVE)
 
 
@@ -236,7 +121,27 @@ class Scene:
         self._warned: set[str] = set()
         self.derived: dict[str, DerivedParameter] = {}  # reparameterisations declared by the scene
         self.is_builtin = False  # made by Scene.builtin (not from a user's file or dict)
+        # each mesh's weld from the positions and normals it was loaded with, made when first asked
+        # for; holding the meshes keeps their Python objects (and so their ids) for the scene's life
+        self._meshes = {id(s): s for s in mi_scene.shapes() if isinstance(s, mi.Mesh)}
+        self._loaded_welds: dict[int, MeshWeld] = {}
+        for mesh_id, mesh in self._meshes.items():
+            if int(mesh.vertex_count()) <= EAGER_WELD_VERTICES:
+                self._loaded_welds[mesh_id] = weld_of(mesh)
         _LIVE.add(self)
+
+    def mesh_weld(self, mesh: mi.Mesh) -> MeshWeld | None:
+        """The :class:`~torchir.welding.MeshWeld` of ``mesh`` from the positions and normals it was
+        loaded with, or None when ``mesh`` is not one of this scene's (see
+        :func:`torchir.welding.mesh_weld`). Meshes over ``EAGER_WELD_VERTICES`` vertices are
+        welded when first asked for, as they are then."""
+        mesh_id = id(mesh)
+        if self._meshes.get(mesh_id) is not mesh:
+            return None
+        weld = self._loaded_welds.get(mesh_id)
+        if weld is None:
+            weld = self._loaded_welds[mesh_id] = weld_of(mesh)
+        return weld
 
     # ----------------------------------------------------------------------------- loading
     @classmethod

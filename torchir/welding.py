@@ -29,7 +29,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["weld_map", "mesh_weld", "MeshWeld", "WeldedFaces", "moving_meshes", "group_normals"]
+__all__ = ["weld_map", "mesh_weld", "weld_of", "MeshWeld", "WeldedFaces", "moving_meshes", "group_normals"]
 
 
 def weld_map(positions: np.ndarray) -> np.ndarray:
@@ -111,23 +111,53 @@ def group_normals(mesh: mi.Mesh, weld: MeshWeld) -> mi.Float:
     return dr.ravel(dr.normalize(summed))
 
 
-_WELDS: dict[tuple[int, bytes], MeshWeld] = {}
+_WELDS: dict[tuple[int, bytes], tuple[bytes, MeshWeld]] = {}  # meshes outside a torchir.Scene
 _WELDS_LIMIT = 64
 
 
-def mesh_weld(mesh: mi.Mesh) -> MeshWeld:
-    """``mesh``'s :class:`MeshWeld`, computed from its positions when first seen and kept while its
-    faces are the same (topology is fixed: later moves do not re-weld it)."""
+def _digest(*arrays: np.ndarray | None) -> bytes:
+    h = hashlib.blake2b(digest_size=16)
+    for a in arrays:
+        h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
+    return h.digest()
+
+
+def _loaded_state(mesh: mi.Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``mesh``'s faces, positions and vertex normals (None without) as they are now."""
     faces = np.asarray(mesh.faces_buffer(), np.uint32)
-    key = (id(mesh), hashlib.blake2b(faces.tobytes(), digest_size=16).digest())
-    weld = _WELDS.get(key)
-    if weld is None:
-        positions = np.asarray(dr.detach(mesh.vertex_positions_buffer()), np.float32)
-        normals = np.asarray(dr.detach(mesh.vertex_normals_buffer()), np.float32) if mesh.has_vertex_normals() else None
-        if len(_WELDS) >= _WELDS_LIMIT:
+    positions = np.asarray(dr.detach(mesh.vertex_positions_buffer()), np.float32)
+    normals = np.asarray(dr.detach(mesh.vertex_normals_buffer()), np.float32) if mesh.has_vertex_normals() else None
+    return faces, positions, normals
+
+
+def weld_of(mesh: mi.Mesh) -> MeshWeld:
+    """A fresh :class:`MeshWeld` of ``mesh`` as it is now (its positions and normals)."""
+    return MeshWeld(*_loaded_state(mesh))
+
+
+def mesh_weld(mesh: mi.Mesh) -> MeshWeld:
+    """``mesh``'s :class:`MeshWeld`, from the positions and normals it was loaded with.
+
+    A mesh of a live :class:`torchir.Scene` gets the weld the scene made when it loaded
+    (``Scene.mesh_weld``): exact for as long as the scene lives, however far its vertices moved
+    since. Another mesh (loaded with Mitsuba alone) is welded when first seen and the weld kept
+    while its faces, positions and normals are those it was welded with; a mesh that differs is
+    welded afresh (keyed by identity alone, a later mesh at a freed one's address was given the
+    freed one's weld)."""
+    from .scene import live_scenes  # scene.py imports this module
+
+    for scene in live_scenes():
+        weld = scene.mesh_weld(mesh)
+        if weld is not None:
+            return weld
+    faces, positions, normals = _loaded_state(mesh)
+    key, state = (id(mesh), _digest(faces)), _digest(positions, normals)
+    kept = _WELDS.get(key)
+    if kept is None or kept[0] != state:
+        if kept is None and len(_WELDS) >= _WELDS_LIMIT:
             _WELDS.pop(next(iter(_WELDS)))
-        weld = _WELDS[key] = MeshWeld(faces, positions, normals)
-    return weld
+        kept = _WELDS[key] = (state, MeshWeld(faces, positions, normals))
+    return kept[1]
 
 
 def moving_meshes(scene: mi.Scene, params: Mapping[str, Any] | None) -> list[mi.Mesh]:

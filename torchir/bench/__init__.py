@@ -46,11 +46,36 @@ def environment() -> dict:
 
     from .. import backend
 
+    command, suite = _command()
     return {
+        "suite": suite, "command": command, "commit": _commit(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "torchir_backend": backend.describe(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
         "drjit_threads": dr.thread_count(), "cpu_count": os.cpu_count(), "load_average_1_5_15min": list(os.getloadavg()),
         "python": platform.python_version(), "platform": platform.platform(),
     }
+
+
+def _command() -> tuple[str, str | None]:
+    """The running suite's command line (``python -m torchir.bench.X ...``) and its suite name."""
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    module = spec.name if spec is not None else None
+    head = f"python -m {module}" if module else Path(sys.argv[0]).name
+    suite = next((name for name, path in SUITES.items() if path == module), None)
+    return " ".join([head, *sys.argv[1:]]), suite
+
+
+def _commit() -> str | None:
+    """The torchir checkout's commit (``+changes`` when its tracked files differ), or None outside one."""
+    root = Path(__file__).resolve().parents[2]
+    if not (root / ".git").exists():
+        return None
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "") if head.returncode == 0 else None
 
 
 def run_suites(suites: Sequence[str], quick: bool, out: Path, options: Sequence[str] = ()) -> list[dict]:

@@ -147,6 +147,13 @@ def table(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def summary(results: dict[str, Any]) -> str:
+    """The suite's Markdown, from its ``results.json`` alone (the docs' results page uses it)."""
+    s = results["settings"]
+    return (f"## JPEG targets: the lamp's colour against the PNG's ({s['resolution']}², {s['steps']} steps, "
+            f"{s['seeds']} seeds, photo at {s['photo_spp']} spp)\n\n" + table(results))
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true")
@@ -164,7 +171,6 @@ def main(argv: Sequence[str] | None = None) -> None:
     results["settings"] = {"resolution": resolution, "steps": steps, "seeds": seeds, "photo_spp": args.photo_spp, "spp": 8,
                            "corrections": list(args.corrections)}
     results["environment"] = environment()
-    summary = f"## JPEG targets: the lamp's colour against the PNG's ({resolution}², {steps} steps, {seeds} seeds)\n\n" + table(results)
     rows = offsets(results["answers"])
 
     def draw(ax) -> None:
@@ -175,7 +181,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                         linestyle="-" if correction == "codec" else ":")
         ax.axhline(2.0, color="grey", linewidth=0.8)
 
-    write_outputs(args.out, summary, results, draw, "jpeg_offsets.png", "JPEG quality", "|JPEG - PNG| in PNG seed sd", log_y=True)
+    write_outputs(args.out, summary(results), results, draw, "jpeg_offsets.png", "JPEG quality", "|JPEG - PNG| in PNG seed sd", log_y=True)
 
 
 if __name__ == "__main__":

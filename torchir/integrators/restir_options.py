@@ -81,7 +81,7 @@ class ReSTIROptions:
             ``E[2 (I - T) dI] = 2 (E[I] - T) E[dI] + 2 Cov(I, dI)``, and the covariance term
             pulls the fit off the truth in proportion to the image's variance, which is largest
             where light sampling is hard (docs/restir.md, "Gradient paths"). Decorrelated paths remove
-            that term for every preset (``tests/test_restir_grad_paths.py``); with reuse the
+            that term for every preset (``tests/integrators/test_restir_grad_paths.py``); with reuse the
             gradient's chain burns in too, once, at the first backward.
         forward_only: reuse for the image, plain RIS (``seed_grad``) for the gradient (an ablation).
         nn_backend: ``"auto"`` (timed) | ``"kdtree"`` (scipy) | ``"grid"`` (Dr.Jit) | ``"screen"``

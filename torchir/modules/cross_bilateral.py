@@ -36,7 +36,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from .target_aware import (
+from ._windows import (
     _finish,
     _Taps,
     apply_taps,

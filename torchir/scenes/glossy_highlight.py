@@ -12,7 +12,7 @@ the sphere from +z, so azimuth 0 puts the highlight just above the centre.
 Light transport: direct illumination with Mitsuba's C++ ``direct`` integrator: Mitsuba's
 Python ``prb``/``direct_projective`` sample lights detached and give a point light's
 ``position`` no derivative; the C++ integrators differentiate it (checked against finite
-differences in ``tests/test_scene_derived.py``). A sphere lit by a point light has no moving
+differences in ``tests/core/test_scene_derived.py``). A sphere lit by a point light has no moving
 visibility edge (the terminator is smooth), so no projective term is missing.
 Differentiable unknown: the derived parameter ``light.azimuth`` (shape (1,), radians), which
 the render functions expand to ``light.position`` in torch; ``light.position`` itself works too.
