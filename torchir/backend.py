@@ -125,8 +125,9 @@ def frozen_recordings(sensor_count: int) -> int:
     """Recordings a frozen pass of a scene with ``sensor_count`` sensors keeps (its LRU bound)
     and may make before Dr.Jit's "recorded N times" warning is due: a multi-view run renders
     every sensor each epoch, and an LRU smaller than the sensor count re-records every call
-    (measured: 16 views of 128², ~1.6 s a step, every render re-traced); Dr.Jit's own threshold
-    (10) printed its warning every step for 8 sensors, whose recordings are all expected."""
+    (every render re-traced; measured: docs/rendering.md, "Measurements behind the design");
+    Dr.Jit's own threshold (10) printed its warning every step for 8 sensors, whose recordings
+    are all expected."""
     return _RECORDINGS_PER_PASS + _RECORDINGS_PER_SENSOR * max(1, sensor_count)
 
 

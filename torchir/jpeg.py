@@ -5,8 +5,8 @@ Most JPEGs (cameras, ``PIL``, Mitsuba's writer, libjpeg's default) store the two
 interpolate them back on decoding; each channel is then cut into 8x8 blocks whose DCT
 coefficients are rounded to multiples of the file's quantisation steps. Both move colours: next
 to a colour edge the decoded target mixes the neighbouring pixels' chroma, and a smooth wall's
-blocks round their mean colour the same way. An L2 fit of a colour is pulled off its value (the
-Cornell box's lamp fitted from a 64² JPEG: blue 4.6-7.4 % and red 1.7-2.1 % off the PNG's answer).
+blocks round their mean colour the same way. An L2 fit of a colour is pulled off its value
+(measured on the Cornell box's lamp: docs/training.md, "JPEG targets").
 
 :func:`subsample_chroma` is the codec's chroma filter, :func:`chroma_sampling` reads from a file
 which subsampling it used. The filter follows libjpeg: the encoder averages each ``h x v`` block
@@ -19,8 +19,8 @@ back a file written by libjpeg (Mitsuba's writer, Pillow, most software) bit for
 same 8-bit image.
 
 The codec is not linear in radiance (sRGB, rounding): applied to a noisy render it shifts the
-render's mean (the filter alone at 8 spp: 3 % off in green), and linearised about the target it
-filters the target's already filtered chroma a second time (worse: 15 %).
+render's mean, and linearised about the target it filters the target's already filtered chroma
+a second time, which is worse (measured: docs/training.md, "Measurements behind the design").
 :class:`CodecCorrection` therefore adds to the render the codec's change of a *running mean* of
 the renders, a constant for the gradient: linear in the render, and its own noise averaged away.
 Pixel-sampled fits (``render_pixels``) are not corrected: a pixel batch has no neighbours to filter.

@@ -35,7 +35,7 @@ from . import backend
 from ._scene_loading import (TextureStorage, _check_texture_storage, _float_bitmaps, _integrator_spec, _override_integrator,
                              _resolving_from)
 from ._scene_values import _is_flat_float, _is_transform, _is_vector_array, _same_layout, _torch_shape, _unbindable_hint
-from .welding import MeshWeld, group_normals, mesh_weld, weld_of
+from .welding import MeshWeld, group_normals, keep_loaded_welds, mesh_weld, weld_of
 
 __all__ = ["Scene", "ParameterInfo", "DerivedParameter"]
 
@@ -128,6 +128,7 @@ class Scene:
         for mesh_id, mesh in self._meshes.items():
             if int(mesh.vertex_count()) <= EAGER_WELD_VERTICES:
                 self._loaded_welds[mesh_id] = weld_of(mesh)
+        keep_loaded_welds(self)
         _LIVE.add(self)
 
     def mesh_weld(self, mesh: mi.Mesh) -> MeshWeld | None:

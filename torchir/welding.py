@@ -22,6 +22,7 @@ for a flat-shaded export (every normal its face's), face normals.
 from __future__ import annotations
 
 import hashlib
+import weakref
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -29,7 +30,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["weld_map", "mesh_weld", "weld_of", "MeshWeld", "WeldedFaces", "moving_meshes", "group_normals"]
+__all__ = ["weld_map", "mesh_weld", "weld_of", "keep_loaded_welds", "MeshWeld", "WeldedFaces", "moving_meshes", "group_normals"]
 
 
 def weld_map(positions: np.ndarray) -> np.ndarray:
@@ -112,6 +113,13 @@ def group_normals(mesh: mi.Mesh, weld: MeshWeld) -> mi.Float:
 
 
 _WELDS: dict[tuple[int, bytes], tuple[bytes, MeshWeld]] = {}  # meshes outside a torchir.Scene
+_OWNERS: weakref.WeakSet = weakref.WeakSet()  # torchir.Scenes: mesh_weld asks their own first
+
+
+def keep_loaded_welds(owner: Any) -> None:
+    """Register ``owner`` (a :class:`torchir.Scene`): while it lives, :func:`mesh_weld` takes the
+    weld of one of its meshes from ``owner.mesh_weld(mesh)`` (None: not its mesh)."""
+    _OWNERS.add(owner)
 _WELDS_LIMIT = 64
 
 
@@ -144,10 +152,8 @@ def mesh_weld(mesh: mi.Mesh) -> MeshWeld:
     while its faces, positions and normals are those it was welded with; a mesh that differs is
     welded afresh (keyed by identity alone, a later mesh at a freed one's address was given the
     freed one's weld)."""
-    from .scene import live_scenes  # scene.py imports this module
-
-    for scene in live_scenes():
-        weld = scene.mesh_weld(mesh)
+    for owner in list(_OWNERS):
+        weld = owner.mesh_weld(mesh)
         if weld is not None:
             return weld
     faces, positions, normals = _loaded_state(mesh)

@@ -136,12 +136,13 @@ class _PixelPasses:
     """The pixel passes of one scene (subset primal and replay, Stage-1 probes), frozen
     (``dr.freeze``) for lane counts seen before.
 
-    Tracing the integrator in Python dominates a subset render (about 17 ms per call against
-    0.2 ms of kernels at a few hundred pixels). A frozen pass bakes the lane count into its
-    recording (a replay with another count silently keeps the old one), so the count is a
-    Python argument, which keys the recordings, and a count is frozen only from its second
-    use: a constant per-step budget replays, while the varying per-view counts of a
-    multi-view minibatch stay unfrozen instead of re-recording every step.
+    Tracing the integrator in Python dominates a subset render of a few hundred pixels, far
+    above its kernels' time (measured: docs/pixel-sampling.md, "Measurements behind the
+    design"). A frozen pass bakes the lane count into its recording (a replay with another count
+    silently keeps the old one), so the count is a Python argument, which keys the recordings,
+    and a count is frozen only from its second use: a constant per-step budget replays, while
+    the varying per-view counts of a multi-view minibatch stay unfrozen instead of re-recording
+    every step.
     """
 
     def __init__(self, scene: Scene) -> None:

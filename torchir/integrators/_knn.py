@@ -345,9 +345,9 @@ class NeighbourSearch:
 
     ``auto`` times the available back-ends on the caller's own queries: after one untimed call
     each (compilation), ``timed`` calls each in turn, then keeps the one with the lower median
-    (``chosen``, separately for calls with and without a layout). Measured at 128^2 (1 spp,
-    ``oxalis_lite``): kd-tree 20 ms, grid 3.8 ms per search. Without scipy, or on CUDA, the
-    kd-tree is not a candidate.
+    (``chosen``, separately for calls with and without a layout), since their speeds differ
+    with the queries (measurements: docs/restir-measurements.md, "Neighbour search"). Without
+    scipy, or on CUDA, the kd-tree is not a candidate.
     """
 
     BACKENDS = tuple(b for b in NN_BACKENDS if b != "auto")

@@ -1,10 +1,10 @@
 """Per-lane learned light-candidate densities for ReSTIR's lane chains (``light_guide``).
 
-Why: at a kept shading point behind a door slit, about 1 % of uniform light samples on the
-bright light are visible, so RIS weights ``w = p̂ / p_c`` are mostly 0 and rarely huge, and a
-chain needs ~10^5 candidates to reach the camera-sampling floor (``ajar_painting``: light
-variance L = 0.49 per candidate, floor 0.0024). A lane whose shading point stays put can
-learn *where* its light comes from and draw candidates there.
+Why: at a kept shading point behind a door slit, only a small share of uniform light samples
+on the bright light are visible, so RIS weights ``w = p̂ / p_c`` are mostly 0 and rarely huge,
+and a chain needs very many candidates to reach the camera-sampling floor (measurements:
+docs/restir-measurements.md, "Young lanes and light guides"). A lane whose shading point stays
+put can learn *where* its light comes from and draw candidates there.
 
 What: each lane learns, from the weights ``w = p̂ / q`` of its candidates (importance-weighted
 estimates of where ``p̂`` lives):

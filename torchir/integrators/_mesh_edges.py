@@ -189,9 +189,8 @@ def back_seen_past_border(mesh: mi.Mesh, viewpoint: np.ndarray, scene: mi.Scene 
 
 def mitsuba_silhouettes_wrong(mesh: mi.Mesh) -> bool:
     """Whether Mitsuba's projective primary term is wrong for ``mesh``: on a flat-shaded or
-    hard-edged mesh it misses the creases, where the shading jumps (a cube's pixels: -7.8 against -4.6 by finite
-    differences), and past an open border it shades a one-sided material's back as its front
-    (an open tube's pixels: -5.8 against +1.8); right on smooth closed meshes (a UV sphere, once
-    welded)."""
+    hard-edged mesh it misses the creases, where the shading jumps, and past an open border it
+    shades a one-sided material's back as its front; right on smooth closed meshes (a UV sphere,
+    once welded). Measurements: docs/shape-gradients.md, "Where Mitsuba's primary term is wrong"."""
     table = edges_of(mesh)
     return bool(table.crease.any()) or has_open_border(table)

@@ -217,10 +217,10 @@ def young_continuation(scene: mi.Scene, sensor_obj: mi.Sensor, seed: mi.UInt32, 
     about ``extra`` candidates (``M`` of them) at the first hits ``pi`` of the camera rays
     ``ray`` of the redrawn lanes ``young``.
 
-    Why helpers: looping ``extra`` times in the redrawn lanes alone (8 of 16 384 a step at
-    lifetime 2 048) keeps one core's SIMD packets busy with one live lane each: at
-    ``extra = 32 768`` that cost 0.15 s a step, 3x the rest of a guided pass (ajar_painting,
-    128²). Instead ``P`` helper streams per redrawn lane each run ``c`` candidates at its
+    Why helpers: looping ``extra`` times in the redrawn lanes alone (a few lanes a step) keeps
+    one core's SIMD packets busy with one live lane each, which cost more than the rest of a
+    guided pass (measurements: docs/restir-measurements.md, "Cheaper guided steps").
+    Instead ``P`` helper streams per redrawn lane each run ``c`` candidates at its
     shading point (``P c >= extra``, about one helper per lane of the pass), and one of
     them is chosen in proportion to its ``w_sum`` (exactly streaming RIS over all ``P c``
     candidates: they are i.i.d.). The lanes' light guides were emptied where redrawn, so
@@ -270,12 +270,13 @@ def streaming_ris(scene: mi.Scene, si: mi.SurfaceInteraction3f, sampler: mi.Samp
     without ``zero_remainder``). ``guide``: candidates partly from the lanes' light guides,
     which learn from them unless not ``learn`` (``guide.finish`` is called): from all of a
     symbolic loop's, from the first ``GUIDE_LEARNING_PER_STEP`` of an unrolled one (the
-    learning's scatters cost more than the draws: 3x a usual candidate in a loop, against
-    1.3x without learning).
+    learning's scatters cost more than the draws; measurements: docs/restir-measurements.md,
+    "Young lanes and light guides").
     Up to ``UNROLLED_CANDIDATES`` the loop is unrolled into the kernel where that pays: with
     guides, or beyond ``SYMBOLIC_UP_TO_LANES`` lanes (``unroll`` forces either way); else a
-    symbolic loop keeps the kernel small (1024 unrolled candidates took minutes to compile;
-    16 compile in twice a loop's time). Both draw the same random numbers."""
+    symbolic loop keeps the kernel small, since unrolled candidates lengthen the compilation
+    (measurements: docs/restir-measurements.md, "Unrolled candidate loops"). Both draw the same
+    random numbers."""
     y, y0 = dr.zeros(LightSample(), n), dr.zeros(LightSample(), n)
     f_sel, phat_sel = dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n)
     w_sum, inv_pc0, n0 = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)

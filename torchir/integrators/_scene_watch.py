@@ -21,10 +21,10 @@ class EmitterWatch:
     there, which decides the count ``Z`` of the unbiased 1/Z weight) in the *current* scene, not
     the previous step's, which is exact only while the support stays put. A light that comes on
     (all its emission values were zero) or moves makes the old reservoirs unable to hold its
-    samples, so Z would count them and darken the image (measured: 0.67x of the reference on the
-    first step after a spot came on). :meth:`same_support` says when the previous step's
-    reservoirs must not be reused. A light dimmed, brightened or switched off keeps or shrinks
-    the support: reuse goes on.
+    samples, so Z would count them and darken the image (measurements: docs/restir.md, "Speed";
+    docs/restir-measurements.md, "Scene watches"). :meth:`same_support` says when the
+    previous step's reservoirs must not be reused. A light dimmed, brightened or switched off
+    keeps or shrinks the support: reuse goes on.
     """
 
     _EMISSION = ("radiance.value", "intensity.value", "irradiance.value", "scale", ".data")
@@ -103,7 +103,8 @@ def as_tuples(value):
 def _fingerprint(v) -> tuple:
     """The value of a scene parameter as a tuple of floats (large arrays: size, sum and sum of
     squares). Width-1 literals (a light's colour, a point light's position) are read without
-    numpy or a host sync: this runs for every light at every step (256 lights: 0.5 ms)."""
+    numpy or a host sync: this runs for every light at every step, so it must stay cheap
+    (measurements: docs/restir-measurements.md, "Scene watches")."""
     if isinstance(v, (int, float)):
         return (float(v),)
     if "Transform" in type(v).__name__:  # (points have a .matrix too)

@@ -6,9 +6,10 @@ black in a thin band inside its silhouettes. The band's inner edge is the curve
 
 ``x`` the surface point seen at image position ``u``, ``n_s`` the interpolated vertex normal and
 ``c`` the pinhole. It lies inside the triangles, not on an edge, and moves when the vertex
-normals turn, so neither Mitsuba's projective integrators nor the edge estimators sample it: on a
-24x12 UV sphere a vertex beside the silhouette got 1.48 +- 0.02 from both against 1.76 +- 0.05
-by finite differences. With a box filter (pixel units) its part of the pixel derivative is
+normals turn, so neither Mitsuba's projective integrators nor the edge estimators sample it, and
+a vertex beside the silhouette gets a biased derivative from both (measurements:
+docs/shape-gradients.md, "Smooth-shaded meshes"). With a box filter (pixel units) its part of
+the pixel derivative is
 
     dI_q/dθ ⊃ ∫_{G = 0, in q} (L_lit - L_band) (∂G/∂θ) / |∇G| dℓ,
 

@@ -20,24 +20,24 @@ changes the measure by (derived for this module; checked against finite differen
 receiver's cosine in ``G``.
 
 The (edge, light) pair is drawn by edge length x the scene's light pmf, or, given a guide kept
-across steps, mostly by what the earlier steps' samples found on each pair (Wang et al. 2023, Eq. 27):
-2.5x lower sd for the blocker below at 64².
+across steps, mostly by what the earlier steps' samples found on each pair (Wang et al. 2023, Eq. 27),
+which lowers the derivative's spread (measurements: docs/shape-gradients.md, "Edge guiding").
 
 The light point may be resampled: RIS over several points by area with the target ``|adjoint · F|``
-(Wang et al. 2023, Eq. 24). Off by default: on ``occluded_lights`` even 64 candidates lowered the variance only
-1.4x at 64² (none at 128²), at 3-95x the cost; the edge and the point on it set the noise.
+(Wang et al. 2023, Eq. 24). Off by default: it lowered the variance little, at a large cost; the
+edge and the point on it set the noise (measurements: docs/shape-gradients.md, "Shape parameters"
+and "Light-point resampling").
 So may the whole sample (pair, point on the edge, light point; ``edge_candidates``), with the same
-target. At a fixed adjoint, perfect importance sampling of ``|adjoint · F|`` would leave 1/6 of
-the guided variance on the box blocker and 1/93 or less on the lumpy ``crown`` (3312 edges; 93x
-and 270x in two runs); 16 candidates took the crown's edge variance down 33x for 12x the edge
-time, the box's 2.9x (64²).
+target: it pays on a many-edged blocker (as the lumpy ``crown``), few of whose edges lie on the
+outline seen from the light, not on a simple box (measurements: docs/shape-gradients.md,
+"A many-edged blocker").
 
 Only edges of the given meshes are sampled (the geometry that moves), and only area lights
 (planar, as Mitsuba's rectangles and meshes are per triangle) are supported: the caller keeps
-Mitsuba's own estimator for anything else (:func:`supported`). On ``occluded_lights`` (32², the
-blocker's rotation) this gave the same derivative as finite differences and Mitsuba's
-``direct_projective`` with about 1/100 of the latter's variance at equal time, since
-``direct_projective`` samples the edges of every shape.
+Mitsuba's own estimator for anything else (:func:`supported`). This agrees with finite
+differences and Mitsuba's ``direct_projective`` with far less variance at equal time, since
+``direct_projective`` samples the edges of every shape (measurements: docs/shape-gradients.md,
+"Shadow edges on the moving meshes alone").
 """
 from __future__ import annotations
 

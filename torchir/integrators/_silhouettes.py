@@ -21,14 +21,16 @@ smooth normals a grazing view is below the shading horizon in a thin band along 
 black in the image. With ``grazing`` the inside is shaded as the camera sees it, and the band's
 inner edge comes from its own term (:mod:`._shading_bands`); without, as if seen along its
 shading normal (as ``direct_projective`` does), so that the two edges' terms add up to the
-radiance inside that band minus ``L_out`` while the band moves with the silhouette (on ``pig``,
-shading the grazing view without the band's term gave 0.6x the finite-difference derivative; a
-vertex beside a UV sphere's silhouette, whose normals turn the band, 1.48 against 1.76). A sample counts only if the inside ray meets the mesh at ``xB``
-(the edge is not hidden; within ``VISIBLE_TOLERANCE`` of the distance).
+radiance inside that band minus ``L_out`` while the band moves with the silhouette (shading the
+grazing view without the band's term underestimates the derivative, and so does the
+along-the-normal shading where the vertex normals turn the band; measurements:
+docs/shape-gradients.md, "Shading a silhouette's inside" and "Primary silhouettes"). A sample
+counts only if the inside ray meets the mesh at ``xB`` (the edge is not hidden; within
+``VISIBLE_TOLERANCE`` of the distance).
 
-Light candidates are drawn in a symbolic loop, not unrolled as in the integrator's frozen step: at
-128² with 256 lights 16 candidates took 0.34 s a call against 1.21 s unrolled (4: 0.26 s against
-0.34 s; one light, 16: 0.10 s against 0.15 s).
+Light candidates are drawn in a symbolic loop, not unrolled as in the integrator's frozen step:
+the loop was faster in every configuration measured (docs/shape-gradients.md, "Silhouette
+candidates").
 """
 from __future__ import annotations
 

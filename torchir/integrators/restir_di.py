@@ -340,12 +340,12 @@ class ReSTIRDirectIntegrator(BoundaryTerms):
             learn=not keep_offsets or step_pass, same_point=self.shadowed and self.same_point_visibility)
 
     def _frozen_pass_ready(self, scene: mi.Scene, now: tuple) -> bool:
-        """Whether the frozen pass may run now, with the scene's geometry ``now`` (GeometryWatch). A replay reuses the acceleration structure it
-        was recorded with, so once geometry changes (a mesh's vertices, a shape's transform)
-        the steps run unfrozen; after a step with unchanged geometry the pass is recorded
-        anew. Vertices bound by each render (shape optimisation) are a new variable every
-        step, so such runs stay unfrozen. (Measured: a frozen pass replayed after a vertex
-        edit rendered 0.)"""
+        """Whether the frozen pass may run now, with the scene's geometry ``now`` (GeometryWatch).
+        A replay reuses the acceleration structure it was recorded with, so once geometry
+        changes (a mesh's vertices, a shape's transform) the steps run unfrozen; after a step
+        with unchanged geometry the pass is recorded anew. Vertices bound by each render (shape
+        optimisation) are a new variable every step, so such runs stay unfrozen. A replay after a
+        geometry edit renders wrong (measurements: docs/restir-measurements.md, "Frozen passes")."""
         steady = self._geometry_seen is None or now == self._geometry_seen
         self._geometry_seen = now
         if self._frozen_pass is not None and now == self._geometry_frozen:

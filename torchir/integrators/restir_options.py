@@ -60,7 +60,7 @@ class ReSTIROptions:
     Attributes:
         candidates: M, light candidates per camera sample (streaming RIS).
         neighbors: k, reservoirs of the previous step combined per camera sample (8 and 16
-            candidates: the lowest error x time of k in 2-16, M in 8-16 at 128², docs/restir-measurements.md).
+            candidates: the lowest error x time of those tried; measurements: docs/restir.md, "Speed").
         radius: neighbour search radius in world units (``None``: 2 pixel footprints).
         m_cap: cap on M (``None``: 2 * candidates for searched neighbours, 64 * candidates
             for a lane's own chain). Any move of a shading point lets a long memory count in
@@ -100,13 +100,13 @@ class ReSTIROptions:
             paper's Alg. 8: one store for all views; a view reuses every view's reservoirs near
             its shading points, and a render replaces only the reservoirs its sensor sees;
             :attr:`steps` then counts the store's steps under key -1) or ``"auto"``
-            (``carry_over`` for scenes with several sensors: 1.9-2.2x lower error x time than
-            per-sensor chains in ``torchir bench restir_views``).
+            (``carry_over`` for scenes with several sensors: lower error x time than per-sensor
+            chains, with no burn-in per view and reservoirs from every view; measurements:
+            docs/restir.md, the opening section, ``torchir bench restir_views``).
         spp_chains: at ``spp > 1``, sample ``s`` of a pixel reuses only samples ``s`` of the
             pixels around it (``spp`` interleaved chains: a pixel's samples stay independent, and
-            the screen search scans ``spp`` times fewer samples). Measured at 128², 4 spp
-            against one search over every sample: gradient error 0.028 vs 0.038 (``oxalis_lite``)
-            and 0.029 vs 0.031 (``ajar_painting``) at 0.66x and 0.59x the step time.
+            the screen search scans ``spp`` times fewer samples): lower gradient error in less
+            time than one search over every sample (measurements: docs/restir.md, "Speed").
         offset_lifetime: steps a camera sample keeps its position in the pixel, on average
             (``None`` or 0: a new one every step; ``float("inf")``: until the sensor or the
             geometry changes). Each step's positions stay uniform, so every step is unbiased;

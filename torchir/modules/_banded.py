@@ -4,12 +4,13 @@ The LOI loss blurs ``(B, C, K, H, W)`` volumes with truncated Gaussians (and the
 cell means). As dense matrix products that costs ``H + W`` multiply-adds per voxel whatever
 the kernel's width; a banded product costs its width ``L`` (7 for ``alpha = 1``, 31 for
 ``alpha = 5``, against ~560 at 256² with the LOI margin). torch has no banded product on the
-CPU (its 1-channel ``conv2d`` measured 2x slower than the dense product), so this module
-compiles one short C function on first use, with the system's C compiler, into a per-user
-cache, and calls it through ``ctypes``. Without a compiler (or for float64, non-CPU tensors,
-matrices that are not narrow, or ``TORCHIR_NATIVE=0``) it falls back to the dense product,
-which gives the same values to float32 rounding. The same library holds the LOI loss's fused
-per-bin kernel (``loi_sigma``, ``point_cdf``; called from :mod:`._loi_native`).
+CPU (and its 1-channel ``conv2d`` is slower than the dense product; measured: docs/loi.md,
+"Measurements behind the design"), so this module compiles one short C function on first use,
+with the system's C compiler, into a per-user cache, and calls it through ``ctypes``. Without a
+compiler (or for float64, non-CPU tensors, matrices that are not narrow, or
+``TORCHIR_NATIVE=0``) it falls back to the dense product, which gives the same values to
+float32 rounding. The same library holds the LOI loss's fused per-bin kernel (``loi_sigma``,
+``point_cdf``; called from :mod:`._loi_native`).
 
 Example:
     >>> from torchir.modules._blur import gaussian_matrix

@@ -57,7 +57,7 @@ def point_cdf(j_sigma: torch.Tensor, edges: torch.Tensor, beta: float) -> torch.
     """``Phi((e_k - J) / beta)``, ``(B, C, K, H, W)``, with the kernel's own ``Phi`` (where
     :func:`usable`): a reference's CDFs must come from the same ``Phi`` as the rendered image's
     inside :func:`sigma_term`, or equal pixels differ by rounding and the sign of ``A D`` there
-    turns into noise (measured: 2.3 % of the image gradient on glossy_highlight)."""
+    turns into noise (measured: docs/loi.md)."""
     lib = _banded._load()
     j = j_sigma.detach().contiguous()
     e = edges.detach().to(torch.float32).contiguous()

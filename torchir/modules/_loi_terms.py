@@ -26,8 +26,8 @@ _SQRT_HALF = math.sqrt(0.5)
 
 
 def _phi_cdf(u: torch.Tensor) -> torch.Tensor:
-    """``Phi(u)`` through ``erfc``, which torch vectorises (``torch.special.ndtr`` does not:
-    measured 6 ms against 29 ms for 3M values on one thread; equal to ~1 ulp)."""
+    """``Phi(u)`` through ``erfc``, which torch vectorises (``torch.special.ndtr`` does not, and
+    is slower for the same values; measured: docs/loi.md, "Measurements behind the design")."""
     return torch.erfc(u * -_SQRT_HALF).mul_(0.5)
 
 
@@ -134,8 +134,8 @@ def _operator(n: int, alpha: float, cell: int, pool: int, offset: int, n_support
     ``R (ceil(n / cell), n_support)``. ``pool > 1``: ``R`` factored as a box mean over cells of
     ``pool`` samples, ``P (n_pool, n_support)``, then ``G = R E`` on those cells (``E`` spreads a
     cell's mean over its samples): exact where the input is constant within each pool cell, and
-    the wide blur runs on ``pool^2`` times fewer samples (measured on glossy_highlight at 256²:
-    image gradient within 0.66 % of the exact loss's, against 0.56 % for ``R`` itself)."""
+    the wide blur runs on ``pool^2`` times fewer samples, for a gradient error close to that of
+    ``R`` itself (measured: docs/loi.md, "Measurements behind the design")."""
     rows = gaussian_matrix(n, alpha, truncate, torch.float64, "cpu") if cell == 1 else cell_means(n, alpha, cell, truncate, torch.float64, "cpu")[0]
     rows = rows[:, offset : offset + n_support]
     if pool == 1:

@@ -23,7 +23,7 @@ _SERIAL_BELOW = 2**20  # elements per tap op below which the tap loops run on on
 def serial_for(numel: int) -> Iterator[None]:
     """One torch thread for the tap loops of small images. Each tap op then takes tens of
     microseconds, and on a shared, oversubscribed CPU OpenMP's fork/join per op made 2 threads
-    up to 50x slower than 1 (measured: 128^2, r = 10, 19 s vs 0.36 s)."""
+    far slower than 1 (measured: docs/troubleshooting.md, "Measurements behind the design")."""
     threads = torch.get_num_threads()
     if threads == 1 or numel >= _SERIAL_BELOW:
         yield

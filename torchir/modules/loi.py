@@ -96,8 +96,8 @@ def loi_loss(
             zero crossings differ; ``torchir bench loi`` measures speed and loss/gradient error.
         exact: evaluate every term on every pixel (the paper's loss). The default evaluates
             large-``alpha`` terms on cells (``cell_fraction=0.15``: at ``alphas=(1, 5, 15, 45)``
-            the last two on 2 and 6 px cells), measured within 0.037 % of the exact loss and
-            0.66 % of its gradient on 256² renders, in 0.16x the time (fused kernel).
+            the last two on 2 and 6 px cells): close to the exact loss and its gradient in a
+            fraction of the time (measured: docs/loi.md, "Measurements behind the design").
 
     Returns:
         A scalar (``(B,)`` for ``reduction="none"``). Each term is a mean over channels and

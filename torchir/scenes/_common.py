@@ -75,8 +75,9 @@ def welded_box(name: str, to_world: mi.ScalarTransform4f, bsdf: dict[str, Any]) 
     """A closed box whose faces share their 8 corner vertices (flat-shaded, no uv).
 
     Mitsuba's ``cube`` gives each face its own 4 vertices, so every edge is an open mesh border
-    to the projective integrators' silhouette sampling: measured on ``occluded_lights``, its
-    boundary gradient was 2.00x the finite-difference derivative, a welded box's 1.07 +- 0.17x."""
+    to the projective integrators' silhouette sampling, which then overstates the boundary
+    gradient; a welded box's agrees with finite differences (measured on ``occluded_lights``:
+    docs/rendering.md, "Measurements behind the design")."""
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
     return triangle_mesh(name, transform_points(to_world, corners), np.array(_BOX_FACES, dtype=np.uint32), bsdf)
 

@@ -69,10 +69,9 @@ class InverseRenderingModule(pl.LightningModule):
         lr: learning rate (per-parameter ``lr`` overrides it).
         lr_half_life: steps over which every learning rate halves (decayed each step), or
             ``None`` for constant rates. With a constant rate the error stops falling at a
-            level set by the gradient noise (measured: a 5% pixel budget at 512^2 levels off at
-            1.4-2.2x the full image's error); a decay lowers that floor over the run (a
-            half-life of 150 steps took it to 0.011-0.016 against the constant-rate full
-            image's 0.029-0.031: ``torchir bench scaleup``).
+            level set by the gradient noise (a small pixel budget levels off above the full
+            image's error); a decay lowers that floor over the run (measured with
+            ``torchir bench scaleup``: docs/training.md, "Measurements behind the design").
         optimizer: ``adam`` (default) or ``sgd``.
         preview_spp: samples per pixel of the images written for people (initial/current/final).
     """
@@ -371,9 +370,10 @@ class InverseRenderingModule(pl.LightningModule):
 
         One process writes them to the loggers itself on the loggers' steps
         (``trainer.log_every_n_steps``), one row per step, in ``on_train_batch_end``: Lightning's
-        ``self.log`` costs ~0.3 ms a metric, a third of a 1%-pixel step at 256^2. ``loss`` also
-        goes through ``self.log`` (progress bar, ``callback_metrics``, checkpoint monitors).
-        Under DDP every metric goes through ``self.log``, which reduces it across processes."""
+        ``self.log`` per metric is a large part of a small pixel-sampled step (measured:
+        docs/pixel-sampling.md). ``loss`` also goes through ``self.log`` (progress bar,
+        ``callback_metrics``, checkpoint monitors). Under DDP every metric goes through
+        ``self.log``, which reduces it across processes."""
         metrics = {"loss": float(loss.detach())}
         if not self._loss_is_image_error:  # else it would repeat the loss
             metrics["image_error"] = float(image_error)
