@@ -1,14 +1,17 @@
 """``torchir bench``: the speed/accuracy trade of each technique, measured, in one report.
 
 Each suite is a module of this package with ``main(argv)`` that takes ``--quick`` and
-``--out DIR``, prints its tables (Markdown) and writes ``results.json`` and PNG plots into
-``DIR`` (optionally ``summary.md``); :mod:`torchir.bench._common` holds what they share (medians,
+``--out DIR``, prints its tables (Markdown) and writes, through :func:`save_results`,
+``results.json`` (with the run's :func:`environment`: command, commit, machine) and
+``summary.md``, and PNG plots into ``DIR``; a suite may define ``summary(results) -> str``, its
+tables from the JSON alone (:mod:`torchir.bench.pages`); :mod:`torchir.bench._common` holds what they share (medians,
 Markdown tables, timing). The suite's output is kept in ``DIR/log.txt``. :func:`run_suites` runs suites one after another, each in a fresh process (Dr.Jit's
 kernel cache and memory do not leak from one into the next), then writes the report
 (:mod:`torchir.bench.report`).
 """
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import time
@@ -109,20 +112,29 @@ def run_suites(suites: Sequence[str], quick: bool, out: Path, options: Sequence[
     return runs
 
 
+def save_results(out: Path, results: Any, summary: str | None = None) -> None:
+    """Every suite's output: ``results.json`` (a mapping gets the run's :func:`environment` unless it
+    has one; a list is wrapped as ``{"runs": ..., "environment": ...}``) and, when given,
+    ``summary.md`` (its Markdown tables). The docs' results page reads both (:mod:`.pages`)."""
+    out.mkdir(parents=True, exist_ok=True)
+    record = dict(results) if isinstance(results, dict) else {"runs": results}
+    record.setdefault("environment", environment())
+    (out / "results.json").write_text(json.dumps(record, indent=1))
+    if summary is not None:
+        (out / "summary.md").write_text(summary if summary.endswith("\n") else summary + "\n")
+
+
 def write_outputs(out: Path, summary: str, results: dict, draw: Callable[[Any], None], picture: str,
                   xlabel: str, ylabel: str, log_y: bool = False) -> None:
     """Print a suite's Markdown ``summary`` and write ``summary.md``, ``results.json`` and one
     line plot (``picture``, drawn by ``draw(ax)``) into ``out``."""
-    import json
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     print(summary)
-    (out / "summary.md").write_text(summary)
-    (out / "results.json").write_text(json.dumps(results, indent=1))
+    save_results(out, results, summary)
     fig, ax = plt.subplots(figsize=(7, 4))
     draw(ax)
     ax.set_xlabel(xlabel)

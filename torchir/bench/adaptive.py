@@ -59,7 +59,7 @@ import numpy as np
 import torch
 
 import torchir
-from torchir.bench import environment
+from torchir.bench import environment, save_results
 
 from .adaptive_setup import (METHODS, RED, SMOOTH, TEX, VARIANTS, Config, Problem, VarianceResult, cbox_problem, draw_seed,
                              full_loss, glossy_problem, gradient_statistics, make_sampler, parse_args, pixel_loss,
@@ -496,10 +496,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     total = time.perf_counter() - started
     results["wall_seconds"] = total
     results["environment"]["load_average_end"] = list(os.getloadavg())
-    (out / "results.json").write_text(json.dumps(results, indent=1))
+    summary = "\n".join(f"### {title}\n\n{table}\n" for title, table in tables)
+    save_results(out, results, summary)
     print("\n## all tables\n")
-    for title, table in tables:
-        print(f"### {title}\n\n{table}\n")
+    print(summary)
     print(f"total wall time {total:.0f} s; load average at start {load0:.1f}, at end {os.getloadavg()[0]:.1f} "
           f"on {os.cpu_count()} CPUs")
     print(f"wrote {out / 'results.json'} and PNG plots in {out}")

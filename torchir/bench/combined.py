@@ -40,7 +40,6 @@ against total wall time, every configuration and seed, medians marked).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import platform
 import statistics
@@ -52,6 +51,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from ._common import fmt, markdown_table, median
+from torchir.bench import save_results
 
 __all__ = ["CONFIGURATIONS", "Configuration", "main", "plot_results", "reach_fractions", "summarize", "tables"]
 
@@ -533,8 +533,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     print("\n" + text, flush=True)
     wall = time.perf_counter() - started
     results = {"config": vars(a), "machine": platform.platform(), "wall_seconds": wall, "summary": summary, "runs": runs}
-    (out / "results.json").write_text(json.dumps(results, indent=1))
-    (out / "summary.md").write_text(text)
+    save_results(out, results, text)
     plots = plot_results(runs, out)
     print(f"wrote {out}/results.json, summary.md and {len(plots)} plot(s) ({wall:.0f} s)", flush=True)
 

@@ -31,7 +31,6 @@ Writes ``<out>/results.json``, ``<out>/texel_error.png`` and ``<out>/timing.png`
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import time
@@ -45,6 +44,7 @@ import torch
 import torchir
 from torchir.functions import render, render_gbuffers
 from torchir.modules import CrossBilateralDenoiser, TargetAwareDenoiser, l1_loss
+from torchir.bench import save_results
 
 METHODS = ("none", "cross_bilateral", "target_aware")
 KEYS = {"albedo": "back.bsdf.reflectance.data", "roughness": "back.bsdf.roughness.data"}
@@ -299,7 +299,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     print(text)
     meta = dict(config=asdict(cfg), machine=platform.platform(), torch_threads=torch.get_num_threads(),
                 variant=torchir.backend.variant(), seconds=time.perf_counter() - t0)
-    (out / "results.json").write_text(json.dumps(dict(meta=meta, timing=rows, optimisation=res), indent=1))
+    save_results(out, dict(meta=meta, timing=rows, optimisation=res), text)
     plots(cfg, res, rows, out)
     print(f"\nwrote {out}/results.json and plots ({meta['seconds']:.0f} s)")
 

@@ -41,6 +41,8 @@ Writes ``<out>/results.json`` (summary + one record per run), ``<out>/runs.jsonl
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import math
 import os
@@ -56,6 +58,7 @@ import torchir
 from torchir.modules import GaussianPyramidLoss, LOILoss, MultiScaleL2Loss
 from torchir.modules._banded import native_available, native_products
 from ._common import median
+from torchir.bench import save_results
 
 LossFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 METHODS = ("l2", "gp", "ms_l2", "sigma_w1", "loi", "loi_exact", "loi_cells")
@@ -431,11 +434,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         if "cost" in args.only:
             cost = bench_cost(args)
     summary = summarise(runs, args.methods)
-    print_tables(summary, cost, args.methods)
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        print_tables(summary, cost, args.methods)
+    print(printed.getvalue())
     settings = {k: v for k, v in vars(args).items() if k != "jsonl"}
     result = dict(settings=settings, machine=dict(platform=platform.platform(), cpus=os.cpu_count(), torch_threads=torch.get_num_threads()),
                   summary=summary, cost=cost, runs=runs, seconds=time.perf_counter() - t0)
-    (out / "results.json").write_text(json.dumps(result, indent=2))
+    save_results(out, result, printed.getvalue())
     plot(summary, runs, args.methods, out / "loi_bench.png")
     print(f"\nwrote {out / 'results.json'}, {out / 'runs.jsonl'} and {out / 'loi_bench.png'} ({result['seconds']:.0f} s)")
     return result

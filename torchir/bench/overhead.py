@@ -29,7 +29,6 @@ Writes ``<out>/results.json``, ``<out>/summary.md`` and ``<out>/seconds_per_step
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from collections.abc import Sequence
@@ -43,7 +42,7 @@ import numpy as np
 import torch
 
 import torchir
-from torchir.bench import environment
+from torchir.bench import environment, save_results
 from torchir.backend import KernelStats, count_kernels
 from torchir.functions import render
 
@@ -361,12 +360,11 @@ def save(out: Path, cfg: Config, setup: Setup, warm: dict[str, KernelStats], blo
             for b in blocks
         ],
     }
-    (out / "results.json").write_text(json.dumps(result, indent=2))
-    (out / "summary.md").write_text(
+    save_results(out, result, summary=(
         f"Scene {cfg.scene} {cfg.resolution}², {cfg.spp} spp, {cfg.reps} x {cfg.steps} timed steps per method "
         f"(interleaved). Goal: torchir/native <= 1 and zero compilations after warm-up.\n\n"
         f"```\n{format_table(summaries, ratio)}\n```\n"
-    )
+    ))
     plot(out / "seconds_per_step.png", cfg, summaries, ratio)
 
 

@@ -87,7 +87,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from torchir.bench import combined
+from torchir.bench import combined, save_results
 from ._common import sync_time
 from .restir_report import (ALL_RESTIRS, BASELINES, DEFAULT_SCENES, METHODS, ORACLE, ORACLE_LOW, REFERENCE_BATCHES,
                             bracketing_spps, camera_floor, equal_time_error, equal_time_estimate, equal_time_spp,
@@ -340,21 +340,10 @@ def calibrate(problem: Problem, a: argparse.Namespace, equal_samples: list[dict[
             "equal_time_spp_exact": {m: exact[m] for m in a.methods}, "probes": probes}
 
 
-def _freezes() -> bool:
-    """Whether ``ReSTIRSampler`` replays frozen passes (then its stage timers give one ``pass``)."""
-    import inspect
-
-    from torchir.samplers import ReSTIRSampler
-
-    return "freeze" in inspect.signature(ReSTIRSampler).parameters
-
-
 def stage_breakdown(problem: Problem, a: argparse.Namespace) -> dict[str, dict[str, Any]]:
     """Where the time of a step goes when the pass is not frozen: ``cal_steps`` steps of B.2 and
     each ReSTIR variant with ``freeze=False`` (per-stage timers with syncs; the Python tracing a
-    frozen pass saves shows up in the stages). Empty when the sampler does not freeze."""
-    if not _freezes():
-        return {}
+    frozen pass saves shows up in the stages)."""
     out = {}
     for m in ("B.2", *a.restir_methods):
         sampler = problem.sampler(m, a, burn_in=min(a.burn_in, 2), freeze=False)
@@ -504,6 +493,11 @@ def run_scene(name: str, a: argparse.Namespace) -> dict[str, Any]:
             "seconds": time.perf_counter() - t0}
 
 
+def summary(results: dict[str, Any]) -> str:
+    """The suite's Markdown, from its ``results.json`` alone (the docs' results page uses it)."""
+    return tables(results)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     a = parse_args(argv)
     import torchir
@@ -528,9 +522,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     results["complete"] = True
     text = tables(results)
     print("\n" + text, flush=True)
-    (out / "results.json").write_text(json.dumps(results, indent=1))
+    save_results(out, results, text)
     (out / "tables.md").write_text(text)
-    (out / "summary.md").write_text(text)
     plots = plot_results(results, out)
     print(f"wrote {out}/results.json, tables.md, summary.md and {len(plots)} plot(s) ({results['wall_seconds']:.0f} s)", flush=True)
 

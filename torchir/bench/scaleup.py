@@ -58,7 +58,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from torchir.bench import combined
+from torchir.bench import combined, save_results
 from torchir.bench._common import median
 from torchir.bench.combined import reach_fractions  # per seed, against a reference run
 
@@ -232,8 +232,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     print("\n" + text, flush=True)
     wall = time.perf_counter() - started
     results = {"config": vars(a), "machine": platform.platform(), "wall_seconds": wall, "summary": summary, "runs": runs}
-    (out / "results.json").write_text(json.dumps(results, indent=1))
-    (out / "summary.md").write_text(text)
+    save_results(out, results, text)
     plots = combined.plot_results(runs, out)
     print(f"wrote {out}/results.json, summary.md and {len(plots)} plot(s) ({wall:.0f} s)", flush=True)
     return results

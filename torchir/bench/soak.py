@@ -26,6 +26,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+from torchir.bench import save_results
 
 TECHNIQUES: dict[str, dict[str, Any]] = {  # technique -> InverseRenderingModule overrides
     "plain": {},
@@ -170,10 +171,11 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         else:
             results.append(json.loads(line[len("SOAK-RESULT "):]))
         print(f"[soak] {technique}: {time.perf_counter() - started:.0f} s", flush=True)
-    (out / "results.json").write_text(json.dumps(results, indent=1))
+    summary = (f"### Soak: {steps} steps per technique, warm-up {warmup} steps; goals: memory growth < "
+               f"{100 * MEMORY_GOAL:.0f}% and 0 cache misses after warm-up\n\n{table(results)}")
+    save_results(out, results, summary)
     plot(out / "soak.png", results)
-    print(f"### Soak: {steps} steps per technique, warm-up {warmup} steps; goals: memory growth < {100 * MEMORY_GOAL:.0f}% and 0 cache misses after warm-up")
-    print(table(results))
+    print(summary)
     print(f"wrote {out / 'results.json'} and {out / 'soak.png'}")
     return results
 

@@ -24,7 +24,6 @@ Writes ``<out>/results.json``, ``<out>/summary.md`` and ``<out>/step_cost.png``.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import tempfile
 import time
@@ -32,7 +31,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from torchir.bench import combined, environment
+from torchir.bench import combined, environment, save_results
 
 BUDGETS = (0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0)
 SAMPLERS = ("uniform", "adaptive")
@@ -168,8 +167,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     text = tables(rows, meta)
     print("\n" + text, flush=True)
     results = {"config": vars(a), "environment": environment(), "wall_seconds": time.perf_counter() - started, "rows": rows, "runs": runs}
-    (out / "results.json").write_text(json.dumps(results, indent=1))
-    (out / "summary.md").write_text(text + "\n")
+    save_results(out, results, text)
     path = plot(rows, out)
     print(f"wrote {out}/results.json, summary.md and {path.name}", flush=True)
     return results
