@@ -63,3 +63,13 @@ def test_environment_records_the_command_and_the_commit():
     env = environment()
     assert env["command"].split()[0] and env["date"].endswith("UTC")
     assert env["commit"] is None or len(env["commit"].split("+")[0]) == 40
+
+
+def test_the_docs_page_is_the_kept_runs_page():
+    """docs/measured.md (kept in the repository, so links to it resolve in any test order) is
+    what the kept runs make; after adding a run: ``python -m torchir.bench.pages``."""
+    from pathlib import Path
+
+    docs = Path(__file__).resolve().parents[2] / "docs"
+    assert (docs / "measured.md").read_text() == results_page(docs / "results")
+    assert any((docs / "results").glob("*/results.json"))  # at least one run is kept

@@ -1256,7 +1256,9 @@ def test_the_lanes_own_chain_reuses_visibility_it_already_knows(point, spatial):
     runs = []
     for known in (True, False):
         i = _integrator(candidates=2, burn_in=2, spatial=spatial, offset_lifetime=float("inf"))
-        i.same_point_visibility = known
+        if not known:  # the same passes with the own chain's visibility traced again
+            settings = i._pass_settings
+            i._pass_settings = lambda *args, settings=settings: dataclasses.replace(settings(*args), same_point=False)
         images = [_np(i.step(point, 0, s, 2)[0]) for s in range(4)]
         assert (i._neighbour_search.last == "lane") == (not spatial)
         r = i.states[0].prev

@@ -6,8 +6,9 @@ Markdown page: per run, where and how it was measured (the ``environment`` recor
 ``results.json``: command, commit, machine, versions), its tables, and its plots. Where the
 suite defines ``summary(results) -> str``, the tables are rebuilt from ``results.json`` by that
 function (so the page is the JSON's, whatever ``summary.md`` says); otherwise ``summary.md``,
-which the suite wrote from the same results, is included. The docs build calls it
-(``docs/conf.py``), so each figure lives in one place: the run's JSON.
+which the suite wrote from the same results, is included. The docs build writes the page
+(``docs/conf.py``), as does ``python -m torchir.bench.pages``; it is kept in the repository (a
+test checks it is current), so each figure lives in one place: the run's JSON.
 """
 from __future__ import annotations
 
@@ -21,8 +22,8 @@ from . import SUITES
 __all__ = ["results_page", "measured_on"]
 
 TITLE = "# Measured results"
-INTRO = ("Generated when the docs are built, from the benchmark runs kept under `docs/results/` "
-         "(each a suite's output folder: `results.json`, `summary.md`, plots). To add or refresh one: "
+INTRO = ("Generated (by the docs build, or `python -m torchir.bench.pages`) from the benchmark runs kept under "
+         "`docs/results/` (each a suite's output folder: `results.json`, `summary.md`, plots). To add or refresh one: "
          "`torchir bench SUITE [options] --out /tmp/run`, then copy `/tmp/run/SUITE` to `docs/results/NAME/`.")
 
 
@@ -71,7 +72,20 @@ def results_page(root: Path, link_base: str = "results") -> str:
         lines += ["No runs are kept yet.", ""]
     for folder in folders:
         results = json.loads((folder / "results.json").read_text())
-        lines += [f"## {folder.name}", "", measured_on(results.get("environment", {})), "", _demote(_tables(folder, results)), ""]
+        lines += [f"## {folder.name}", "", measured_on(results.get("environment", {})), "",
+                  _demote(_tables(folder, results)), ""]
         for picture in sorted(folder.glob("*.png")):
             lines += [f"![{picture.stem}]({link_base}/{folder.name}/{picture.name})", ""]
     return "\n".join(lines)
+
+
+def main() -> None:
+    """``python -m torchir.bench.pages``: write docs/measured.md from docs/results/ (the docs build
+    does the same; the file is kept in the repository so that links to it always resolve)."""
+    docs = Path(__file__).resolve().parents[2] / "docs"
+    (docs / "measured.md").write_text(results_page(docs / "results"))
+    print(f"wrote {docs / 'measured.md'}")
+
+
+if __name__ == "__main__":
+    main()

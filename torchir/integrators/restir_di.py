@@ -82,8 +82,6 @@ def check_scene(scene: mi.Scene) -> None:
 class ReSTIRDirectIntegrator(BoundaryTerms):
     __doc__ = __doc__
     zero_remainder = True  # step() takes zero_remainder= (torchir's render sets it per step)
-    young_lane_burn_in = True  # a redrawn lane continues its first RIS over burn_in x candidates (see _pass; False: as before, for measurements)
-    same_point_visibility = True  # a lane's own chain reuses its sample's visibility (see _combine; False: traced, for tests)
 
     def __init__(self, props: mi.Properties | None = None, options: ReSTIROptions | None = None, **changes: Any) -> None:
         """``options`` (default ``ReSTIROptions()``), with ``changes`` applied; a Mitsuba
@@ -330,14 +328,15 @@ class ReSTIRDirectIntegrator(BoundaryTerms):
                        zero_remainder: bool, keep_offsets: bool, candidates: int, m_cap: float) -> PassSettings:
         """The pass's settings: these, and the integrator's options as they apply to it."""
         step_pass = candidates == self.candidates  # not a burn-in pass over its own count
-        young = self.lane_chains and self.burn_in > 0 and self.young_lane_burn_in and step_pass
+        # a redrawn lane's RIS continues over the burn-in's count of candidates (a young chain)
+        young = self.lane_chains and self.burn_in > 0 and step_pass
         return PassSettings(
             sensor=sensor, spp=spp, source=source, k=k, radius=radius, layout=layout, zero_remainder=zero_remainder,
             keep_offsets=keep_offsets, candidates=candidates, m_cap=m_cap, shadowed=self.shadowed,
             lane_chains=self.lane_chains, chain_cap=self.chain_cap, normal_threshold=self.normal_threshold,
             offset_lifetime=self.offset_lifetime, light_guide=self.light_guide,
             young_candidates=self.burn_in * self.candidates if young else 0,
-            learn=not keep_offsets or step_pass, same_point=self.shadowed and self.same_point_visibility)
+            learn=not keep_offsets or step_pass, same_point=self.shadowed)
 
     def _frozen_pass_ready(self, scene: mi.Scene, now: tuple) -> bool:
         """Whether the frozen pass may run now, with the scene's geometry ``now`` (GeometryWatch).
