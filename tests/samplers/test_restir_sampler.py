@@ -5,6 +5,7 @@ messages, ``render_seed``, ``check_gradients``, ``diagnostics``, state round tri
 from __future__ import annotations
 
 import copy
+import dataclasses
 import warnings
 
 import torchir  # noqa: I001  (before torch)
@@ -13,7 +14,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from torchir.samplers import ReSTIRSampler
+from torchir.samplers import ReSTIROptions, ReSTIRSampler
 from torchir.integrators.restir_options import PRESETS
 
 from tests.helpers import raised_message as _raises
@@ -271,15 +272,17 @@ def _fake_states(r: ReSTIRSampler) -> None:
 def test_state_round_trip_and_steps(scene):
     a = ReSTIRSampler(scene, preset="b2", seed=9)
     assert a.steps == {}
-    assert a.state_dict() == {"preset": "b2", "seed": 9, "sensors": {}}
+    assert a.state_dict() == {"preset": "b2", "seed": 9, "options": dataclasses.asdict(a.options), "sensors": {}}
     _fake_states(a)
     assert a.steps == {0: 4, 2: 1}
     state = a.state_dict()
-    assert set(state) == {"preset", "seed", "sensors"}
+    assert set(state) == {"preset", "seed", "options", "sensors"}
     assert (state["preset"], state["seed"]) == ("b2", 9)
     assert state["sensors"] == a.integrator.state_dict()
     b = ReSTIRSampler(scene)
-    b.load_state_dict(state)
+    with pytest.warns(UserWarning, match=r"other options; they continue under this sampler's \(temporal: False -> True; "
+                                         r"spatial: False -> True; burn_in: 0 -> 32\)"):
+        b.load_state_dict(state)
     assert b.steps == {0: 4, 2: 1}
     assert b.integrator.states[0].radius == 0.5 and b.integrator.states[0].window == 3
     assert b.integrator.states[0].camera == ((1.0, 2.0), 8, 8, 1)
@@ -334,3 +337,22 @@ def test_repr(scene):
         "grad_paths='shared', m_cap=5, nn_backend='grid', target='unshadowed')"
     )
     assert str(r) == repr(r)
+
+
+def test_options_travel_with_the_state_and_a_resume_under_others_says_which(scene):
+    """The options the chains were built with are saved; loading them into a sampler with the same
+    options is silent, with other ones warns field by field; a state without options (older
+    checkpoints) loads silently."""
+    a = ReSTIRSampler(scene, candidates=4, light_guide=0.5, offset_lifetime=64.0, spatial=False)
+    _fake_states(a)
+    state = a.state_dict()
+    assert ReSTIROptions(**state["options"]) == a.options  # the saved options rebuild the same object
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ReSTIRSampler(scene, a.options).load_state_dict(state)
+        ReSTIRSampler(scene).load_state_dict({k: v for k, v in state.items() if k != "options"})
+    other = ReSTIRSampler(scene, a.options.replace(candidates=8))
+    with pytest.warns(UserWarning) as record:
+        other.load_state_dict(state)
+    (warning,) = record
+    assert str(warning.message).endswith("(candidates: 4 -> 8)") and other.steps == {0: 4, 2: 1}

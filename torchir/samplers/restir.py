@@ -29,6 +29,8 @@ Presets (one flag for the paper's equal-time comparisons):
 from __future__ import annotations
 
 import copy
+import dataclasses
+import warnings
 from typing import Any
 
 from ..integrators.restir_options import PERSISTENT_LIFETIME, PRESETS, ReSTIROptions
@@ -151,12 +153,23 @@ class ReSTIRSampler:
         return out
 
     def state_dict(self) -> dict[str, Any]:
-        """Reservoirs (numpy arrays) and resolved radius per sensor, plus the options."""
-        return {"preset": self.preset, "seed": self.seed, "sensors": self.integrator.state_dict()}
+        """Reservoirs (numpy arrays) and resolved radius per sensor, plus the preset, seed and
+        options (every :class:`ReSTIROptions` field) the chains were built with."""
+        return {"preset": self.preset, "seed": self.seed, "options": dataclasses.asdict(self.options),
+                "sensors": self.integrator.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """The chains of ``state``, continued under this sampler's own options; where those differ
+        from the options the chains were built with (a checkpoint resumed with another config), a
+        warning names each field, saved and now."""
         if not isinstance(state, dict) or "sensors" not in state:
             raise ValueError("expected a dict from ReSTIRSampler.state_dict()")
+        saved, now = state.get("options"), dataclasses.asdict(self.options)
+        if isinstance(saved, dict):  # older checkpoints have none
+            changed = [f"{k}: {saved[k]!r} -> {now[k]!r}" for k in now if k in saved and saved[k] != now[k]]
+            if changed:
+                warnings.warn("ReSTIR reservoirs loaded from a state built with other options; they continue under "
+                              "this sampler's (" + "; ".join(changed) + ")", stacklevel=2)
         self.integrator.load_state_dict(copy.deepcopy(state["sensors"]))
 
     @property
