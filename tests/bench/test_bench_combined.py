@@ -1,6 +1,7 @@
 """The `combined` bench suite's summary, tables and plots on synthetic results (no renders)."""
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -152,6 +153,8 @@ def test_equal_time_gives_every_configuration_the_baselines_wall_time(tmp_path, 
 
     monkeypatch.setattr(combined, "run_configuration", fake)
     combined.main(["--only", "cbox", "--seeds", "1", "--steps", "4", "--warmup", "0", "--equal-time", "--out", str(tmp_path)])
+    saved = json.loads((tmp_path / "results.json").read_text())  # the docs' page rebuilds the tables from it
+    assert combined.summary(saved).rstrip() == (tmp_path / "summary.md").read_text().rstrip()
     assert calls[0] == ("plain (full render)", 4, None)  # the baseline first, for its step count
     timed = [c for c in calls[1:] if c[0] in ("uniform pixels 5%", "adaptive pixels 5%")]
     assert timed and all(steps == 200 and seconds == pytest.approx(4 * 0.5) for _, steps, seconds in timed)

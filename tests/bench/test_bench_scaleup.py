@@ -75,3 +75,5 @@ def test_quick_run_writes_results_and_plots(tmp_path):
     ran = [r for r in results["runs"] if r["status"] == "ran"]
     assert len(ran) == len(scaleup.configurations(scaleup.workloads(True)[-1]))
     assert (tmp_path / "summary.md").is_file() and (tmp_path / "pareto.png").stat().st_size > 0
+    saved = json.loads((tmp_path / "results.json").read_text())  # the docs' page rebuilds the tables from it
+    assert scaleup.summary(saved).rstrip() == (tmp_path / "summary.md").read_text().rstrip()

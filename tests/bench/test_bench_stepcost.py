@@ -38,3 +38,19 @@ def test_plot_is_written(tmp_path):
     runs = [_run(64, 0, stepcost.FULL, 0.1)] + [_run(64, 0, f"{s} {b:g}", 0.1 * b + 0.005) for s in stepcost.SAMPLERS for b in (0.01, 0.05, 1.0)]
     path = stepcost.plot(stepcost.summarize(runs), tmp_path)
     assert path.stat().st_size > 0
+
+
+def test_main_writes_tables_its_json_rebuilds(tmp_path, monkeypatch):
+    """``main`` with the trainer stubbed (a fixed step time per budget): summary.md is what
+    ``summary(results.json)`` gives, so the docs' results page shows the JSON's figures."""
+    import json
+
+    def fake(config, seed, resolution, steps, quick, workdir, target_spp=None):
+        step = 0.1 if config.name == stepcost.FULL else 0.02
+        return {"status": "ran", "step_seconds": [step] * max(steps, stepcost.SKIP + 2)}
+
+    monkeypatch.setattr(stepcost.combined, "run_configuration", fake)
+    stepcost.main(["--resolutions", "16", "--reps", "1", "--steps", "8", "--out", str(tmp_path)])
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert saved["environment"]["command"] and [r["sampler"] for r in saved["rows"]].count(stepcost.FULL) == 1
+    assert stepcost.summary(saved).rstrip() == (tmp_path / "summary.md").read_text().rstrip()

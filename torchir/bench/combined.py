@@ -385,6 +385,13 @@ def _claim(summary: dict[str, Any]) -> list[str]:
     ]
 
 
+def summary(results: dict[str, Any]) -> str:
+    """The suite's Markdown, from its ``results.json`` alone (the docs' results page uses it)."""
+    c = results["config"]
+    meta = {"resolution": c["resolution"], "steps": c["steps"], "seeds": c["seeds"], "equal_time": c["equal_time"]}
+    return tables(results["summary"], meta)
+
+
 def tables(summary: dict[str, Any], meta: dict[str, Any]) -> str:
     """The suite's Markdown: one table per scene (ratios against its plain run) and the table of
     rejected/unsupported combinations with their errors."""
@@ -527,12 +534,12 @@ def main(argv: Sequence[str] | None = None) -> None:
                         if "final_param_error" in run else run.get("error", ""))
                 print(f"[combined] seed {seed} {config.scene} / {config.name}: {run['status']} "
                       f"({time.perf_counter() - t0:.1f} s) {what}", flush=True)
-    summary = summarize(runs)
+    summarized = summarize(runs)
     meta = {"resolution": a.resolution, "steps": a.steps, "seeds": a.seeds, "equal_time": a.equal_time, "wall_seconds": time.perf_counter() - started}
-    text = tables(summary, meta)
+    text = tables(summarized, meta)
     print("\n" + text, flush=True)
     wall = time.perf_counter() - started
-    results = {"config": vars(a), "machine": platform.platform(), "wall_seconds": wall, "summary": summary, "runs": runs}
+    results = {"config": vars(a), "machine": platform.platform(), "wall_seconds": wall, "summary": summarized, "runs": runs}
     save_results(out, results, text)
     plots = plot_results(runs, out)
     print(f"wrote {out}/results.json, summary.md and {len(plots)} plot(s) ({wall:.0f} s)", flush=True)

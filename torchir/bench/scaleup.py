@@ -166,6 +166,11 @@ def _cell(reach: tuple[float, int, int]) -> str:
     return f"never (0/{total})" if hit == 0 else f"{value:.3g}x ({hit}/{total})"
 
 
+def summary(results: dict[str, Any]) -> str:
+    """The suite's Markdown, from its ``results.json`` alone (the docs' results page uses it)."""
+    return tables(results["summary"], {"steps": results["config"]["steps"], "seeds": results["config"]["seeds"]})
+
+
 def tables(summary: dict[str, list[dict[str, Any]]], meta: dict[str, Any]) -> str:
     """The suite's Markdown: one table per workload."""
     lines = [
@@ -227,11 +232,11 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                     print(f"[scaleup] seed {seed} {workload.name} / {name}: {result['status']} ({time.perf_counter() - t0:.1f} s) {what}",
                           flush=True)
                 (out / "results.json").write_text(json.dumps({"config": vars(a), "runs": runs}))  # nothing lost if stopped
-    summary = summarize(runs)
-    text = tables(summary, {"steps": a.steps, "seeds": a.seeds})
+    summarized = summarize(runs)
+    text = tables(summarized, {"steps": a.steps, "seeds": a.seeds})
     print("\n" + text, flush=True)
     wall = time.perf_counter() - started
-    results = {"config": vars(a), "machine": platform.platform(), "wall_seconds": wall, "summary": summary, "runs": runs}
+    results = {"config": vars(a), "machine": platform.platform(), "wall_seconds": wall, "summary": summarized, "runs": runs}
     save_results(out, results, text)
     plots = combined.plot_results(runs, out)
     print(f"wrote {out}/results.json, summary.md and {len(plots)} plot(s) ({wall:.0f} s)", flush=True)

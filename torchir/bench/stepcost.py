@@ -81,6 +81,11 @@ def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
+def summary(results: dict[str, Any]) -> str:
+    """The suite's Markdown, from its ``results.json`` alone (the docs' results page uses it)."""
+    return tables(results["rows"], {"steps": results["config"]["steps"], "reps": results["config"]["reps"]})
+
+
 def tables(rows: list[dict[str, Any]], meta: dict[str, Any]) -> str:
     lines = [
         f"# Time per step against the pixel budget (cbox, 1 spp, {meta['steps']} steps, {meta['reps']} repetition(s))", "",
