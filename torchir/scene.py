@@ -35,7 +35,7 @@ from . import backend
 from ._scene_loading import (TextureStorage, _check_texture_storage, _float_bitmaps, _integrator_spec, _override_integrator,
                              _resolving_from)
 from ._scene_values import _is_flat_float, _is_transform, _is_vector_array, _same_layout, _torch_shape, _unbindable_hint
-from .welding import MeshWeld, group_normals, keep_loaded_welds, mesh_weld, weld_of
+from .welding import MeshWeld, group_normals, keep_loaded_welds, weld_of
 
 __all__ = ["Scene", "ParameterInfo", "DerivedParameter"]
 
@@ -523,7 +523,7 @@ class Scene:
         out = []
         for shape in self.mi_scene.shapes():
             if isinstance(shape, mi.Mesh) and shape.id() in mesh_ids and shape.has_vertex_normals():
-                weld = mesh_weld(shape)
+                weld = self.mesh_weld(shape)  # its own mesh: the weld it was loaded with
                 if weld.merges and f"{shape.id()}.vertex_normals" in self.params:
                     out.append((shape, weld))
         return out

@@ -118,7 +118,8 @@ def save_results(out: Path, results: Any, summary: str | None = None) -> None:
     ``summary.md`` (its Markdown tables). The docs' results page reads both (:mod:`.pages`)."""
     out.mkdir(parents=True, exist_ok=True)
     record = dict(results) if isinstance(results, dict) else {"runs": results}
-    record.setdefault("environment", environment())
+    if "environment" not in record:  # (setdefault would run git and import Dr.Jit for nothing)
+        record["environment"] = environment()
     (out / "results.json").write_text(json.dumps(record, indent=1))
     if summary is not None:
         (out / "summary.md").write_text(summary if summary.endswith("\n") else summary + "\n")
