@@ -4,7 +4,10 @@
 (LightningCLI, see :mod:`torchir.training.cli`); ``torchir info``: backend, versions and
 built-in scenes; ``torchir bench <suite> [--quick]``: benchmarks and their report
 (:mod:`torchir.bench`); ``torchir export CKPT [--out DIR]``: a checkpoint's recovered values
-(``result.yaml``, textures as EXR) and final images, as a run writes them at its end.
+(``result.yaml``, textures as EXR) and final images, as a run writes them at its end;
+``torchir tune CONFIG [--budget S] [--out DIR] [--full] [--quick]``: the speed/accuracy trade of
+the techniques that apply to a config, measured, and ``<stem>.tuned.yaml`` beside it
+(:mod:`torchir.tune`).
 """
 from __future__ import annotations
 
@@ -54,6 +57,13 @@ def _bench(args: argparse.Namespace) -> int:
     return 0 if all(r["exit_code"] == 0 for r in runs) else 1
 
 
+def _tune(args: argparse.Namespace) -> int:
+    from .tune import tune
+
+    tune(args.config, budget=args.budget, out=args.out, full=args.full, quick=args.quick)
+    return 0
+
+
 LIGHTNING_COMMANDS = ("fit", "validate")
 
 
@@ -82,6 +92,15 @@ def main(argv: list[str] | None = None) -> int:
     export.add_argument("--spp", type=int, default=64, help="samples per pixel of the final images (default 64)")
     export.add_argument("--no-images", action="store_true", help="write result.yaml and parameter files only")
     export.set_defaults(run=_export)
+    tune = sub.add_parser("tune", help="measure the speed/accuracy trade of the techniques that apply to a config and "
+                                       "write <stem>.tuned.yaml beside it")
+    tune.add_argument("config", help="a torchir fit config (YAML)")
+    tune.add_argument("--budget", type=float, default=600.0, help="seconds for the whole search (default 600); it stops "
+                                                                  "there and keeps the best measured so far")
+    tune.add_argument("--out", default=None, help="output folder (default: <config dir>/<config stem>_tune)")
+    tune.add_argument("--full", action="store_true", help="measure the whole grid of settings (slow), not the default search")
+    tune.add_argument("--quick", action="store_true", help="fewer options per setting and shorter trials")
+    tune.set_defaults(run=_tune)
     for command in LIGHTNING_COMMANDS:
         sub.add_parser(command, help=f"Lightning {command} of an inverse-rendering run (--config run.yaml)", add_help=False)
     args, extra = parser.parse_known_args(argv)

@@ -9,8 +9,9 @@ import statistics
 import pytest
 
 from torchir.bench import SUITES
+from torchir.bench.restir_report import error_at_spp
 from torchir.bench.restir import (
-    ALL_RESTIRS, BASELINES, ORACLE, ORACLE_LOW, bracketing_spps, camera_floor, equal_time_error, equal_time_spp, error_beyond_reference,
+    ALL_RESTIRS, BASELINES, DEFAULT_RESTIRS, ORACLE, ORACLE_LOW, bracketing_spps, camera_floor, equal_time_error, equal_time_spp, error_beyond_reference,
     methods_in, parse_args,
     resolve_scenes, restir_variants, summarize_scene, tables,
 )
@@ -175,6 +176,16 @@ def test_summary_splits_floor_and_light_and_reads_gain_of_possible():
     assert "gain 3.2x of possible 4x" in text and "1x (best)" in text
     assert "recon RMSE (eq. wall time, shared)" in text and "| decorrelated: RMSE (steps) |" in text and "0.02 (6)" in text
     assert len({line.count("|") for line in text.splitlines() if line.startswith("| ReSTIR (shadowed) |")}) == 3  # 3 tables
+    assert "Reconstruction bound" not in text
+    with_oracle = {mode: [*runs_, train_run(ORACLE, mode, 0.01, 5)] for mode, runs_ in recon.items()}
+    first = summarize_scene(runs, 1, spp_eq, with_oracle)["reconstruction_summary"]["shared"]
+    assert (first["floor_rmse"], first["floor_steps"], first["bound"]) == (0.01, 5.0, pytest.approx(8.0))  # B.2's 0.08 / 0.01
+    assert ORACLE not in first["rows"]
+    text = tables({"config": {"spp": 1, "resolution": 32, "candidates": 8, "burn_in": 8, "oracle_candidates": 256, "grad_steps": 2,
+                              "ref_spp": 64, "lr": 0.02, "recon_steps": 3, "recon_seeds": 1, "grad_paths": ["shared", "decorrelated"]},
+                   "scenes": {"demo": {**summarize_scene(runs, 1, spp_eq, with_oracle), "reference": {"relative_se": 0.001},
+                                       "calibration": {"budget_seconds": 0.6, "budget_method": "ReSTIR (shadowed)"}}}})
+    assert "reached RMSE 0.01: no light sampler gains more than 8x over the best baseline (B.2)" in text
     below = summarize_scene([*runs[:-2], _run(ORACLE, 1, [0.06, 0.06]), _run(ORACLE, 2, [0.03, 0.03])], 1, spp_eq)
     assert below["rows"]["ReSTIR (shadowed)"]["light"] == 0.0  # an error under the floor: no light part, not NaN
 
@@ -198,7 +209,7 @@ def test_equal_time_error_reads_the_effective_sample_count_at_the_budget():
 def test_summary_reads_baselines_at_exactly_the_budget():
     """A baseline run at 1 and 2 spp (0.1 s and 0.2 s) against a 0.15 s budget: its error is read
     at 1.5 spp, not at the rounded spp, which would give it a third more or less time."""
-    spp_eq = {"direct": 2, "B.1": 2, "B.2": 2, "ReSTIR (shadowed)": 1, "ReSTIR (unshadowed)": 1, "ReSTIR (persistent)": 1}
+    spp_eq = {"direct": 2, "B.1": 2, "B.2": 2, **{m: 1 for m in ALL_RESTIRS}}
     runs = [_run(m, s, [e / math.sqrt(s)] * 2, 0.1 * s) for m, e in (("direct", 0.5), ("B.1", 0.6), ("B.2", 0.3)) for s in (1, 2)]
     runs += [_run(m, 1, [0.05, 0.05], 0.15) for m in ALL_RESTIRS] + [_run(ORACLE, 1, [0.04, 0.04])]
     rows = summarize_scene(runs, 1, spp_eq, budget=0.15)["rows"]
@@ -208,6 +219,20 @@ def test_summary_reads_baselines_at_exactly_the_budget():
     assert rows["ReSTIR (persistent)"]["gain"] == pytest.approx(0.3 / math.sqrt(1.5) / 0.05)
     unread = summarize_scene(runs, 1, spp_eq)["rows"]  # without a budget: the run at the rounded spp
     assert unread["B.2"]["relerr_equal_time"] == pytest.approx(0.3 / math.sqrt(2))
+    # with the calibration's fractional spp, the error is read there, whatever the runs' own step times say
+    noisy = [{**r, "charged_seconds_per_step": 0.15} if r["method"] in BASELINES else r for r in runs]
+    exact = {"direct": 1.5, "B.1": 1.5, "B.2": 1.25}
+    rows = summarize_scene(noisy, 1, spp_eq, budget=0.15, spp_exact=exact)["rows"]
+    assert rows["B.2"]["relerr_equal_time"] == pytest.approx(0.3 / math.sqrt(1.25))
+    assert rows["direct"]["relerr_equal_time"] == pytest.approx(0.5 / math.sqrt(1.5))
+
+
+def test_error_at_spp_is_exact_for_a_one_over_spp_variance():
+    pts = [(1, 0.2), (4, 0.1)]
+    assert error_at_spp(pts, 2.0) == pytest.approx(0.2 / math.sqrt(2))  # between the runs
+    assert error_at_spp(pts, 8.0) == pytest.approx(0.2 / math.sqrt(8))  # beyond: proportional to the nearest
+    assert error_at_spp(pts, 0.5) == pytest.approx(0.2 / math.sqrt(0.5))
+    assert error_at_spp([(2, 0.0)], 1.0) == 0.0
 
 
 def test_equal_time_spp_line_through_the_probes_and_limits():
@@ -231,7 +256,8 @@ def test_options_and_default_scenes():
         parse_args(["--oracle-candidates", "1,2,3"])
     assert full.grad_steps > q.grad_steps and full.recon_steps > q.recon_steps
     # decorrelated paths first (issue 39): they fill the main table and the gradient-error runs
-    assert (q.grad_paths, full.grad_paths) == (["decorrelated"], ["decorrelated", "shared"])
+    assert (q.grad_paths, full.grad_paths) == (["decorrelated"], ["decorrelated"])  # unbiased baselines by default
+    assert parse_args(["--grad-paths", "decorrelated,shared"]).grad_paths == ["decorrelated", "shared"]
     assert parse_args(["--grad-paths", "shared"]).grad_paths == ["shared"]
     from torchir import Scene
     from torchir.bench.restir import Problem
@@ -239,7 +265,7 @@ def test_options_and_default_scenes():
     problem = Problem("oxalis_lite", Scene.builtin("oxalis_lite", resolution=8), "", None, None, None, 0.0, 0.0)
     for a, want in ((q, "decorrelated"), (parse_args(["--grad-paths", "shared,decorrelated"]), "shared")):
         assert problem.sampler("direct", a) is None
-        assert {problem.sampler(m, a).integrator.grad_paths for m in ("B.1", "B.2", *ALL_RESTIRS)} == {want}
+        assert {problem.sampler(m, a).integrator.grad_paths for m in ("B.1", "B.2", *restir_variants(DEFAULT_RESTIRS))} == {want}
     import torchir
 
     present = [s for s in ("ajar_painting", "many_lights", "oxalis_lite") if s in torchir.scenes.available()]
@@ -320,7 +346,7 @@ def test_restir_variants_can_be_run_alone():
     summaries and tables follow the variants a run has, whatever the module constants list."""
     from torchir.bench import restir as bench
 
-    assert parse_args([]).restirs == ["shadowed", "unshadowed", "persistent"] and parse_args([]).restir_methods == ALL_RESTIRS
+    assert parse_args([]).restirs == ["shadowed", "unshadowed", "persistent"] and parse_args([]).restir_methods == ALL_RESTIRS[:3]
     alone = parse_args(["--restirs", "persistent"])
     assert alone.restir_methods == ("ReSTIR (persistent)",) and alone.methods == (*BASELINES, "ReSTIR (persistent)")
     assert restir_variants(["persistent", "shadowed"]) == ("ReSTIR (shadowed)", "ReSTIR (persistent)")  # table order

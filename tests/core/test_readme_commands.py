@@ -48,6 +48,8 @@ ELSEWHERE = {  # command -> "module::test" that runs it (the module under tests/
     "torchir fit --config configs/multiview.yaml --trainer.strategy ddp --trainer.devices 2 --trainer.accelerator cpu":
         "training/test_training_ddp::test_ddp_two_processes_match_one_process",
     "torchir fit --help": "training/test_training_cli::test_fit_help_starts_with_torchir_s_own_flags",
+    "torchir tune configs/painting.yaml --quick":
+        "training/test_tune::test_tune_command_writes_the_table_results_plot_and_a_tuned_config_that_loads",
 }
 CI_COMMAND = "bash scripts/install.sh --dev && python3 -m pytest -n 2 --dist loadfile"  # .ci/run runs it
 

@@ -58,7 +58,7 @@ def _options(r: ReSTIRSampler) -> dict:
 def test_defaults(scene):
     r = ReSTIRSampler(scene)
     assert isinstance(r.integrator, _integrator_module().ReSTIRDirectIntegrator)
-    assert r.scene is scene and r.preset == "restir" and r.seed == 0
+    assert r.scene is scene and r.preset == "auto" and r.seed == 0  # the defaults until its first render chooses
     assert _options(r) == {
         "candidates": 16, "neighbors": 8, "radius": 0.0, "m_cap": 32.0, "temporal": True, "spatial": True,
         "burn_in": 32, "grad_paths": "decorrelated", "forward_only": False, "nn_backend": "auto",
@@ -121,8 +121,9 @@ def test_bad_scene_and_preset(scene):
     assert _raises(TypeError, ReSTIRSampler, "oxalis") == "scene must be a torchir.Scene, got str"
     assert _raises(TypeError, ReSTIRSampler, scene.mi_scene).startswith("scene must be a torchir.Scene, got ")
     msg = _raises(ValueError, ReSTIRSampler, scene, preset="B1")
-    assert msg == "preset must be one of ('restir', 'persistent', 'b1', 'b2', 'forward_only'), got 'B1'"
-    assert ReSTIRSampler(scene, preset=None).preset == "restir"  # None: the default
+    assert msg == "preset must be one of ('auto', 'restir', 'persistent', 'b1', 'b2', 'forward_only'), got 'B1'"
+    assert ReSTIRSampler(scene, preset=None).preset == "auto"  # None and no options: the default
+    assert ReSTIRSampler(scene, preset=None, candidates=4).preset == "restir"  # None with options
 
 
 @pytest.mark.parametrize("seed", [True, False, -1, 2**32, 2**40, 3.0, "3", None])
@@ -279,7 +280,7 @@ def test_state_round_trip_and_steps(scene):
     assert set(state) == {"preset", "seed", "options", "sensors"}
     assert (state["preset"], state["seed"]) == ("b2", 9)
     assert state["sensors"] == a.integrator.state_dict()
-    b = ReSTIRSampler(scene)
+    b = ReSTIRSampler(scene, preset="restir")
     with pytest.warns(UserWarning, match=r"other options; they continue under this sampler's \(temporal: False -> True; "
                                          r"spatial: False -> True; burn_in: 0 -> 32\)"):
         b.load_state_dict(state)
@@ -299,7 +300,7 @@ def test_load_state_dict_copies(scene, monkeypatch):
     state = a.state_dict()
     state["sensors"][0]["reservoirs"] = {"x": np.zeros(2)}
     seen = []
-    b = ReSTIRSampler(scene)
+    b = ReSTIRSampler(scene, preset="restir")
     monkeypatch.setattr(b.integrator, "load_state_dict", seen.append)
     b.load_state_dict(state)
     (got,) = seen
@@ -326,7 +327,7 @@ def test_load_state_dict_replaces(scene):
 
 
 def test_repr(scene):
-    assert repr(ReSTIRSampler(scene)) == (
+    assert repr(ReSTIRSampler(scene, preset="restir")) == (
         "ReSTIRSampler(preset='restir', candidates=16, neighbors=8, temporal=True, spatial=True, burn_in=32, "
         "grad_paths='decorrelated', m_cap=32, nn_backend='auto', target='shadowed')"
     )

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -103,3 +104,22 @@ def test_ddp_restir_carry_over_store_fits(tmp_path):
     store = _restir_views_run(tmp_path / "store", "carry_over", *ddp)
     for value in store.values():
         assert bool(torch.isfinite(value).all()) and not torch.allclose(value, torch.full_like(value, 0.5))
+
+
+@pytest.mark.slow
+def test_ddp_restir_auto_processes_agree_on_the_choice(tmp_path):
+    """``{type: restir}`` under DDP: every process probes its own views, and runs with process 0's
+    choice (the printed lines, which carry the probe's own figures, are the same)."""
+    import yaml
+
+    config = {"model": {"scene": "oxalis_lite", "resolution": 12, "scene_options": {"views": 2, "texture": 4},
+                        "parameters": {"canvas.bsdf.reflectance.data": {"init": 0.5}}, "sampler": {"type": "restir"}},
+              "data": {"target_spp": 8, "views_per_step": 2},
+              "trainer": {"max_steps": 1, "strategy": "ddp", "devices": 2, "accelerator": "cpu", "enable_progress_bar": False}}
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    result = subprocess.run([sys.executable, "-m", "torchir", "fit", "--config", "run.yaml"], capture_output=True, text=True,
+                            timeout=600, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert result.returncode == 0, result.stderr[-3000:]
+    # the two processes write to one pipe: their lines may interleave, so each is read by its pattern
+    lines = re.findall(r"\[torchir\] ReSTIR auto: .*?\(probe [0-9.]+ s\)", result.stdout + result.stderr)
+    assert len(lines) == 2 and lines[0] == lines[1]

@@ -1,7 +1,8 @@
 #!/usr/bin/env python
 """ReSTIR for inverse direct illumination (Wang et al. 2023) vs Mitsuba, B.1 and B.2, with the camera-sampling floor.
 
-Methods (every one recovers the scene's albedo texture, ``torchir.scenes.get(name).parameters[0]``):
+Methods (every one recovers the scene's albedo texture: ``torchir.scenes.get(name).parameters[0]``, a
+held-out scene's :func:`torchir.bench.heldout.spec` key):
 
 * **direct**: the scene's own integrator (``prb``, ``max_depth`` 2: plain Mitsuba direct
   illumination, what a user runs without ReSTIR): ``render(scene, params)`` without ``sampler=``;
@@ -15,6 +16,8 @@ Methods (every one recovers the scene's albedo texture, ``torchir.scenes.get(nam
 * **ReSTIR (persistent)**: ``preset="persistent"``: every camera sample keeps its offset in the
   pixel (redrawn every 2048 steps on average) and resamples with its own previous reservoir
   (temporal reuse at the same shading point, M capped at 64 x candidates), no spatial reuse;
+* **ReSTIR (auto)** (``--restirs auto``, not run by default): ``preset="auto"`` and nothing else:
+  the sampler probes the scene at its first render and picks its own settings;
 * **floor**: an oracle, RIS over ``--oracle-candidates`` (256) shadowed
   candidates, no reuse, at the same seeds and spp as the method: the camera rays of a
   ``ReSTIRSampler`` render depend only on the seed, so the oracle sees the same camera rays
@@ -23,7 +26,12 @@ Methods (every one recovers the scene's albedo texture, ``torchir.scenes.get(nam
   sampler can remove; no light sampler gains more than ``e_baseline / floor`` (the *bound*,
   printed beside every gain: "gain 3.1x of possible 8.2x").
 
-Experiments, per scene (``--scenes``):
+Scenes (``--scenes``): built-in scenes by name, and held-out scenes, procedural layouts nobody
+tuned against, as ``heldout:<family>:<seed>`` (:mod:`torchir.bench.heldout`: ``slit_lights``,
+``holes``, ``open``, ``fine_texture``); ``--heldout N`` adds N fresh seeds per family, drawn from
+the clock (printed and saved in ``results.json``: ``--scenes`` repeats them).
+
+Experiments, per scene:
 
 * **Gradient error**: the adjoint of the L2 loss at the grey (0.5) texture, held
   fixed (the error is the estimator's, not the loss's); ``relerr = ||g − g_ref|| / ||g_ref||``
@@ -67,10 +75,12 @@ Usage (``torchir bench restir [--quick]`` runs the same in a fresh process):
     python -m torchir.bench.restir             # 128², default scenes, 32 gradient steps, 150 training steps (~6-8 min)
     python -m torchir.bench.restir --grad-paths shared   # the paper's shared paths
     python -m torchir.bench.restir --scenes oxalis_lite --resolution 64 --spp 2
+    python -m torchir.bench.restir --heldout 2 --restirs persistent,auto   # two fresh layouts per held-out family
+    python -m torchir.bench.restir --scenes heldout:slit_lights:7,heldout:open:3
 
 Writes ``<out>/results.json``, ``<out>/tables.md`` (= ``summary.md``, which the bench report
 shows), ``<out>/gradient_<scene>.png`` (gradient error against seconds per step) and
-``<out>/reconstruction_<scene>.png`` (texture RMSE against wall time).
+``<out>/reconstruction_<scene>.png`` (texture RMSE against wall time; a held-out spec's ``:`` as ``_``).
 """
 from __future__ import annotations
 
@@ -87,13 +97,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from torchir.bench import combined, save_results
+from torchir.bench import combined, heldout, save_results
 from ._common import sync_time
-from .restir_report import (ALL_RESTIRS, BASELINES, DEFAULT_SCENES, METHODS, ORACLE, ORACLE_LOW, REFERENCE_BATCHES,
-                            bracketing_spps, camera_floor, equal_time_error, equal_time_estimate, equal_time_spp,
-                            error_beyond_reference, methods_in, plot_results, restir_variants, summarize_scene, tables)
+from .restir_report import (ALL_RESTIRS, AUTO, BASELINES, DEFAULT_RESTIRS, DEFAULT_SCENES, METHODS, ORACLE, ORACLE_LOW,
+                            REFERENCE_BATCHES, bracketing_spps, camera_floor, equal_time_error, equal_time_estimate,
+                            equal_time_spp, error_beyond_reference, methods_in, plot_results, restir_variants,
+                            summarize_scene, tables)
 
-__all__ = ["ALL_RESTIRS", "BASELINES", "METHODS", "ORACLE", "ORACLE_LOW", "bracketing_spps", "camera_floor", "equal_time_error",
+__all__ = ["ALL_RESTIRS", "AUTO", "BASELINES", "DEFAULT_RESTIRS", "METHODS", "ORACLE", "ORACLE_LOW", "bracketing_spps", "camera_floor", "equal_time_error",
            "error_beyond_reference",
            "main", "methods_in", "parse_args", "plot_results", "restir_variants", "summarize_scene", "tables"]
 
@@ -104,7 +115,10 @@ BOUNDS = [0.001, 1.0]
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", default=None,
-                   help=f"comma-separated built-in scenes (default: those of {','.join(DEFAULT_SCENES)} that exist; quick: the first)")
+                   help=f"comma-separated built-in scenes and held-out scenes heldout:<family>:<seed> (families: "
+                        f"{', '.join(heldout.FAMILIES)}; default: those of {','.join(DEFAULT_SCENES)} that exist; quick: the first)")
+    p.add_argument("--heldout", type=int, default=0, metavar="N",
+                   help="add N held-out scenes per family, seeds drawn from the clock (printed and saved: --scenes repeats them)")
     p.add_argument("--resolution", type=int, default=None, help="film size (default 128, quick 32)")
     p.add_argument("--spp", type=int, default=1, help="samples per pixel of ReSTIR and of every method at equal samples")
     p.add_argument("--candidates", type=int, default=16, help="M of B.2 and ReSTIR (the sampler default)")
@@ -129,12 +143,20 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--target-spp", type=int, default=None, help="spp of the trainer's target image (default 1024, quick 128)")
     p.add_argument("--lr", type=float, default=0.02)
     p.add_argument("--grad-paths", default=None,
-                   help="comma list of the samplers' gradient paths, decorrelated and/or shared (default decorrelated,shared; "
-                        "quick decorrelated): the reconstruction runs once per mode; the first also sets the gradient-error "
-                        "runs' paths and fills the main table; direct (prb) is always decorrelated")
+                   help="comma list of the samplers' gradient paths, decorrelated and/or shared (default decorrelated: "
+                        "unbiased baselines; shared paths bias B.1's and B.2's L2 fits): the reconstruction runs once per "
+                        "mode; the first also sets the gradient-error runs' paths and fills the main table; direct (prb) is "
+                        "always decorrelated")
     p.add_argument("--no-reconstruction", action="store_true", help="skip the trainer runs")
-    p.add_argument("--restirs", default="shadowed,unshadowed,persistent",
-                   help="ReSTIR variants to run; the slowest sets the equal-time budget (default all three)")
+    p.add_argument("--recon-oracle", action="store_true",
+                   help="also train the floor oracle (RIS over --oracle-candidates, no reuse) for as many steps as the budget's "
+                        "ReSTIR took, its time not charged: the texture RMSE no light sampler can beat in those steps, so "
+                        "the best baseline's RMSE / the oracle's bounds every reconstruction gain")
+    p.add_argument("--lr-half-life", type=float, default=None,
+                   help="steps over which the trainer's learning rate halves (default: constant, as the configs)")
+    p.add_argument("--restirs", default=",".join(DEFAULT_RESTIRS),
+                   help="ReSTIR variants to run, of shadowed, unshadowed, persistent and auto (preset='auto': the sampler "
+                        f"picks its own settings); the slowest sets the equal-time budget (default {','.join(DEFAULT_RESTIRS)})")
     p.add_argument("--quick", action="store_true",
                    help="32², the first default scene, burn-in 8, 8 gradient / 10 training steps, decorrelated paths only: under a minute")
     p.add_argument("--out", default="results/bench_restir")
@@ -148,7 +170,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     a.ref_spp = a.ref_spp or (1024 if q else 16384)
     a.recon_steps = a.recon_steps or (10 if q else 150)
     a.target_spp = a.target_spp or (128 if q else 1024)
-    a.grad_paths = [m.strip() for m in (a.grad_paths or ("decorrelated" if q else "decorrelated,shared")).split(",") if m.strip()]
+    a.grad_paths = [m.strip() for m in (a.grad_paths or "decorrelated").split(",") if m.strip()]
     if not a.grad_paths or any(m not in ("shared", "decorrelated") for m in a.grad_paths):
         p.error("--grad-paths takes shared and/or decorrelated")
     try:
@@ -160,6 +182,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     a.oracle_low, a.oracle_candidates = counts[0] if len(counts) == 2 else None, counts[-1]
     if a.chain_candidates is not None and a.chain_candidates < 1:
         p.error(f"--chain-candidates must be >= 1, got {a.chain_candidates}")
+    if a.heldout < 0:
+        p.error(f"--heldout must be >= 0, got {a.heldout}")
     for name in ("resolution", "spp", "candidates", "oracle_candidates", "cal_steps", "max_spp", "recon_steps", "recon_seeds", "target_spp"):
         if getattr(a, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1")
@@ -178,7 +202,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 def resolve_scenes(spec: str | None, quick: bool = False) -> tuple[list[str], list[str]]:
     """(scenes to run, default scenes not run). Default: the scenes of ``DEFAULT_SCENES`` that
-    are built in; with ``quick`` only the first of them (one scene keeps it under a minute)."""
+    are built in; with ``quick`` only the first of them (one scene keeps it under a minute).
+    ``spec``: comma-separated built-in names and held-out specs ``heldout:<family>:<seed>``
+    (written back in canonical form); ``ValueError`` names what is wrong."""
     import torchir
 
     available = torchir.scenes.available()
@@ -187,10 +213,35 @@ def resolve_scenes(spec: str | None, quick: bool = False) -> tuple[list[str], li
         chosen = present[:1] if quick else present
         return chosen, [s for s in DEFAULT_SCENES if s not in chosen]
     names = [s.strip() for s in spec.split(",") if s.strip()]
-    unknown = [s for s in names if s not in available]
-    if unknown or not names:
-        raise ValueError(f"unknown scene(s) {unknown} in --scenes; available: {', '.join(available)}")
-    return names, []
+    if not names:
+        raise ValueError(f"--scenes is empty; available: {', '.join(available)} or heldout:<family>:<seed>")
+    chosen = []
+    for name in names:
+        if heldout.is_spec(name):
+            family, seed = heldout.parse_spec(name)  # ValueError naming the families
+            name = f"{heldout.PREFIX}:{family}:{seed}"
+        elif name not in available:
+            raise ValueError(f"unknown scene {name!r} in --scenes; available: {', '.join(available)}, or held-out scenes "
+                             f"heldout:<family>:<seed> with family one of {', '.join(heldout.FAMILIES)}")
+        chosen.append(name)
+    return list(dict.fromkeys(chosen)), []
+
+
+def load_scene(name: str, resolution: int) -> tuple[Any, str]:
+    """``(torchir.Scene, texture key)`` of a built-in scene or a held-out spec."""
+    import torchir
+
+    if heldout.is_spec(name):
+        return heldout.load(name, resolution)
+    return torchir.Scene.builtin(name, resolution=resolution), torchir.scenes.get(name).parameters[0]
+
+
+def trainer_scene(name: str) -> dict[str, Any]:
+    """``InverseRenderingModule``'s ``scene=`` (and ``scene_options=``) for a built-in name or a held-out spec."""
+    if heldout.is_spec(name):
+        factory, options = heldout.factory(name)
+        return {"scene": factory, "scene_options": options}
+    return {"scene": name}
 
 
 def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None:
@@ -205,6 +256,8 @@ def sampler_options(method: str, a: argparse.Namespace) -> dict[str, Any] | None
         return {"preset": "b2", "candidates": a.oracle_candidates}
     if method == ORACLE_LOW:
         return {"preset": "b2", "candidates": a.oracle_low}
+    if method == AUTO:
+        return {"preset": "auto"}  # nothing else: it chooses (Problem.sampler adds the run's grad_paths)
     if method == "ReSTIR (persistent)":
         return {"preset": "persistent", "candidates": a.chain_candidates or a.candidates, "burn_in": a.burn_in, "m_cap": a.chain_cap,
                 "light_guide": a.light_guide}
@@ -241,6 +294,8 @@ class Problem:
         modes = getattr(a, "grad_paths", None)
         if modes:
             options = {"grad_paths": modes[0], **options}
+        if method == AUTO:  # told the run's length, as the trainer tells it its max_steps
+            options["planned_steps"] = a.grad_steps
         return ReSTIRSampler(self.scene, **{**options, **extra})
 
     def step(self, sampler, spp: int, seed: int) -> tuple[float, float, dict[str, float]]:
@@ -261,12 +316,10 @@ def make_problem(name: str, a: argparse.Namespace) -> Problem:
     """Scene, target, adjoint at the grey texture and the prb reference gradient (4 batches)."""
     import torch
 
-    import torchir
     from torchir.functions import render
 
     started = time.perf_counter()
-    scene = torchir.Scene.builtin(name, resolution=a.resolution)
-    key = torchir.scenes.get(name).parameters[0]
+    scene, key = load_scene(name, a.resolution)
     grey = torch.full_like(scene.get(key), 0.5)
     target = render(scene, {}, spp=a.ref_spp, seed=1)
     at_grey = render(scene, {key: grey}, spp=a.ref_spp, seed=2)
@@ -378,7 +431,11 @@ def gradient_runs(problem: Problem, a: argparse.Namespace, keys: list[tuple[str,
     keys = list(dict.fromkeys(keys))
     runs = {k: {"method": k[0], "spp": k[1], "sampler": problem.sampler(k[0], a), "relerr_steps": [], "seconds": [],
                 "burn_in": 0.0, "stage_steps": []} for k in keys}
+    started = time.perf_counter()
     for i in range(a.grad_steps):
+        if i and i % max(1, a.grad_steps // 4) == 0:  # a long run shows that it moves
+            print(f"[restir] {problem.name}: gradient step {i}/{a.grad_steps} of {len(keys)} runs "
+                  f"({time.perf_counter() - started:.0f} s)", flush=True)
         for k in keys:
             r = runs[k]
             seconds, error, diag = problem.step(r["sampler"], k[1], 1000 + i)
@@ -405,10 +462,11 @@ def gradient_runs(problem: Problem, a: argparse.Namespace, keys: list[tuple[str,
 
 # ------------------------------------------------------------------------ reconstruction
 def train(name: str, key: str, method: str, a: argparse.Namespace, seed: int, targets, workdir: Path,
-          max_seconds: float | None, grad_paths: str = "decorrelated") -> tuple[dict[str, Any], Any]:
-    """One training run of ``method`` through the real trainer: ``recon_steps`` steps, or (with
-    ``max_seconds``) as many as fit into that wall time. ``targets``: ``(images, views)`` of an
-    earlier run (None: render them). Returns the measurements and the targets."""
+          max_seconds: float | None, grad_paths: str = "decorrelated", steps: int | None = None) -> tuple[dict[str, Any], Any]:
+    """One training run of ``method`` through the real trainer: ``steps`` (default
+    ``recon_steps``) steps, or (with ``max_seconds``) as many as fit into that wall time.
+    ``targets``: ``(images, views)`` of an earlier run (None: render them). Returns the
+    measurements and the targets."""
     import lightning.pytorch as pl
 
     from torchir.training import InverseRenderingModule, ViewDataModule
@@ -416,8 +474,8 @@ def train(name: str, key: str, method: str, a: argparse.Namespace, seed: int, ta
     options = sampler_options(method, a)
     sampler = None if options is None else {"type": "restir", **options, "grad_paths": grad_paths, "seed": seed}
     module = InverseRenderingModule(
-        scene=name, resolution=a.resolution, parameters={key: {"init": 0.5, "bounds": BOUNDS}}, loss="l2",
-        sampler=sampler, spp=a.spp, lr=a.lr, seed=seed, preview_spp=1,
+        **trainer_scene(name), resolution=a.resolution, parameters={key: {"init": 0.5, "bounds": BOUNDS}}, loss="l2",
+        sampler=sampler, spp=a.spp, lr=a.lr, seed=seed, preview_spp=1, lr_half_life=getattr(a, "lr_half_life", None),
     )
     data = ViewDataModule(target_spp=a.target_spp)
     if targets is not None:  # setup() keeps targets that are already there
@@ -425,7 +483,7 @@ def train(name: str, key: str, method: str, a: argparse.Namespace, seed: int, ta
     pl.seed_everything(seed, verbose=False)
     recorder = combined._recorder()  # step seconds, elapsed time, texture RMSE after each step
     trainer = pl.Trainer(
-        max_steps=a.recon_steps if max_seconds is None else 1000 * a.recon_steps,
+        max_steps=(steps or a.recon_steps) if max_seconds is None else 1000 * a.recon_steps,
         max_time=None if max_seconds is None else datetime.timedelta(seconds=max_seconds),
         logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
         log_every_n_steps=1, default_root_dir=str(workdir), callbacks=[recorder],
@@ -458,8 +516,13 @@ def reconstruction(name: str, key: str, a: argparse.Namespace, budget_method: st
                     t0 = time.perf_counter()
                     gc.collect()
                     run, targets = train(name, key, method, a, seed, targets, Path(workdir), budget, mode)
-                    budget = run["train_seconds"] if budget is None else budget
                     runs.append(run)
+                    if budget is None and getattr(a, "recon_oracle", False):  # the budget's steps, time not charged
+                        oracle, _ = train(name, key, ORACLE, a, seed, targets, Path(workdir), None, mode, steps=run["steps"])
+                        runs.append(oracle)
+                        print(f"[restir] {name} reconstruction ({mode} paths) seed {seed} {ORACLE}: {oracle['steps']} steps, "
+                              f"RMSE {oracle['param_error'][0]:.4f} -> {oracle['final_param_error']:.4f}", flush=True)
+                    budget = run["train_seconds"] if budget is None else budget
                     print(f"[restir] {name} reconstruction ({mode} paths) seed {seed} {method}: {run['steps']} steps, "
                           f"{run['train_seconds']:.1f} s (first step {run['step_seconds'][0]:.2f} s), "
                           f"RMSE {run['param_error'][0]:.4f} -> {run['final_param_error']:.4f} ({time.perf_counter() - t0:.1f} s)", flush=True)
@@ -487,8 +550,13 @@ def run_scene(name: str, a: argparse.Namespace) -> dict[str, Any]:
     del problem  # free its Mitsuba scene: the trainer's scenes reuse its Dr.Jit instance ids (see reconstruction)
     gc.collect()
     recon = None if a.no_reconstruction else reconstruction(name, key, a, cal["budget_method"])
-    summary = summarize_scene(runs, a.spp, cal["equal_time_spp"], recon, (a.oracle_low, a.oracle_candidates), cal["budget_seconds"])
-    return {"key": key, "texture_shape": texture, "reference": {"spp": a.ref_spp, "relative_se": ref_se, "seconds": ref_seconds}, "calibration": cal,
+    summary = summarize_scene(runs, a.spp, cal["equal_time_spp"], recon, (a.oracle_low, a.oracle_candidates), cal["budget_seconds"],
+                              cal["equal_time_spp_exact"])
+    held = None
+    if heldout.is_spec(name):
+        family, seed = heldout.parse_spec(name)
+        held = {"family": family, "seed": seed, "light_bound": heldout.FAMILIES[family].light_bound}
+    return {"key": key, "heldout": held, "texture_shape": texture, "reference": {"spp": a.ref_spp, "relative_se": ref_se, "seconds": ref_seconds}, "calibration": cal,
             "gradient_runs": runs, "reconstruction": recon or {}, **summary, "unfrozen_stages": unfrozen,
             "seconds": time.perf_counter() - t0}
 
@@ -506,7 +574,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     combined._quiet()
     from . import environment
 
-    scenes, skipped = resolve_scenes(a.scenes, a.quick)
+    drawn = heldout.draw_specs(a.heldout) if a.heldout else []
+    if drawn:  # saved with the config: --scenes repeats the run
+        a.scenes = ",".join([*([a.scenes] if a.scenes else []), *drawn])
+        print(f"[restir] held-out scenes drawn from the clock: {','.join(drawn)} (repeat with --scenes {a.scenes})", flush=True)
+    try:
+        scenes, skipped = resolve_scenes(a.scenes, a.quick)
+    except ValueError as error:
+        raise SystemExit(f"torchir bench restir: {error}") from None
     if skipped:
         print(f"[restir] default scenes not run{' (--quick runs one)' if a.quick else ' (not built in)'}: {', '.join(skipped)}", flush=True)
     if not scenes:
@@ -514,7 +589,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    results: dict[str, Any] = {"config": vars(a), "environment": environment(), "scenes": {}, "skipped_scenes": skipped}
+    results: dict[str, Any] = {"config": vars(a), "environment": environment(), "scenes": {}, "skipped_scenes": skipped,
+                               "heldout_drawn": drawn}
     for name in scenes:
         results["scenes"][name] = run_scene(name, a)
         results["wall_seconds"] = time.perf_counter() - started

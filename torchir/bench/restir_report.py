@@ -12,15 +12,17 @@ from ._common import fmt, markdown_table, median
 
 DEFAULT_SCENES = ("ajar_painting", "many_lights", "oxalis_lite")
 BASELINES = ("direct", "B.1", "B.2")
-ALL_RESTIRS = ("ReSTIR (shadowed)", "ReSTIR (unshadowed)", "ReSTIR (persistent)")
+AUTO = "ReSTIR (auto)"  # preset="auto": the sampler probes the scene and picks its own settings
+ALL_RESTIRS = ("ReSTIR (shadowed)", "ReSTIR (unshadowed)", "ReSTIR (persistent)", AUTO)
+DEFAULT_RESTIRS = ("shadowed", "unshadowed", "persistent")  # --restirs without the option
 METHODS = (*BASELINES, *ALL_RESTIRS)  # every method; a run's own are ``a.methods`` (--restirs)
 VARIANTS = {m[len("ReSTIR ("):-1]: m for m in ALL_RESTIRS}  # "shadowed" -> "ReSTIR (shadowed)"
 
 
 def restir_variants(names: Sequence[str]) -> tuple[str, ...]:
-    """The ReSTIR methods named ``names`` ("shadowed", "unshadowed", "persistent"), in table
-    order. The slowest of a run's variants sets the equal-time budget, so one variant alone is
-    compared at its own cost."""
+    """The ReSTIR methods named ``names`` ("shadowed", "unshadowed", "persistent", "auto"), in
+    table order. The slowest of a run's variants sets the equal-time budget, so one variant alone
+    is compared at its own cost."""
     unknown = [n for n in names if n not in VARIANTS]
     if unknown or not names:
         raise ValueError(f"--restirs takes some of {', '.join(VARIANTS)}; got {','.join(names)}")
@@ -118,10 +120,29 @@ def equal_time_error(points: Sequence[tuple[float, float]], budget: float) -> fl
     return (v1 * budget / t1) ** -0.5
 
 
+def error_at_spp(points: Sequence[tuple[float, float]], spp: float) -> float:
+    """A method's gradient error at a fractional ``spp`` from its runs ``points`` = ``[(spp,
+    relerr)]`` at whole spps: ``1 / e²`` (the effective sample count) is linear in spp (the
+    variance falls as 1/spp), so it is interpolated between the runs that bracket ``spp``, or
+    extended proportionally from the nearest run. Unlike :func:`equal_time_error` it does not
+    read the gradient runs' own step times, which two runs at nearby spps can measure in the
+    wrong order on a loaded machine; the time enters only through ``spp`` (the calibration's)."""
+    pts = sorted((float(n), e) for n, e in points if e > 0 and n > 0)
+    if not pts:
+        return 0.0
+    inv = [(n, 1.0 / (e * e)) for n, e in pts]
+    for (n0, v0), (n1, v1) in zip(inv, inv[1:]):
+        if n0 <= spp <= n1:
+            return (v0 + (spp - n0) * (v1 - v0) / (n1 - n0)) ** -0.5
+    n, v = inv[0] if spp < inv[0][0] else inv[-1]
+    return (v * spp / n) ** -0.5
+
+
 # ----------------------------------------------------------------------------- summary
 def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int],
                     recon: dict[str, list[dict[str, Any]]] | None = None,
-                    oracle_candidates: tuple[int | None, int] = (None, 256), budget: float | None = None) -> dict[str, Any]:
+                    oracle_candidates: tuple[int | None, int] = (None, 256), budget: float | None = None,
+                    spp_exact: dict[str, float] | None = None) -> dict[str, Any]:
     """One row per method (and the floor oracle) from the gradient runs and training runs.
 
     Row fields: ``relerr_equal_samples``, ``floor`` (the oracle at ``spp``), ``light``
@@ -130,7 +151,10 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
     ``spp_equal_time``); with ``budget`` (the equal-time seconds per step) a baseline's
     ``relerr_equal_time`` is its error at exactly the budget (:func:`equal_time_error` over its
     runs: whole spps round the budget either way, which can favour either side by up to one
-    spp) and its ``seconds_equal_time`` the budget; ``floor_equal_time`` (the oracle at that spp, where
+    spp) and its ``seconds_equal_time`` the budget; with ``spp_exact`` too (the calibration's
+    fractional equal-time spp per method) the error is read at that spp instead
+    (:func:`error_at_spp`: the runs' variance is exactly linear in spp, their step times are
+    noisy); ``floor_equal_time`` (the oracle at that spp, where
     measured), ``gain`` (best baseline's equal-time error / this one's), ``bound`` (best
     baseline's equal-time error / ``floor_equal_time``), ``seconds_per_step``,
     ``burn_in_seconds``, ``charged_seconds_per_step``, ``stages`` and ``step_ratio_to_B.2`` at
@@ -154,7 +178,10 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
         e = eqs["relerr"]
         e_eqt, t_eqt = eqt["relerr"], eqt["charged_seconds_per_step"]
         if budget is not None and m in BASELINES:
-            e_eqt = equal_time_error([(r["charged_seconds_per_step"], r["relerr"]) for (mm, _), r in by.items() if mm == m], budget)
+            if spp_exact and m in spp_exact:
+                e_eqt = error_at_spp([(r["spp"], r["relerr"]) for (mm, _), r in by.items() if mm == m], spp_exact[m])
+            else:
+                e_eqt = equal_time_error([(r["charged_seconds_per_step"], r["relerr"]) for (mm, _), r in by.items() if mm == m], budget)
             t_eqt = budget
         rows[m] = {
             "relerr_equal_samples": e, "floor": floor, "light": math.sqrt(max(e * e - floor * floor, 0.0)),
@@ -200,11 +227,31 @@ def summarize_scene(runs: list[dict[str, Any]], spp: int, spp_eq: dict[str, int]
                 summary[m]["train_step_ratio_to_direct"] = summary[m]["train_step_seconds"] / summary["direct"]["train_step_seconds"]
                 summary[m]["recon_ratio_to_best_baseline"] = summary[m]["recon_rmse"] / summary[best_recon]["recon_rmse"]
             out["reconstruction_summary"][mode] = {"best_baseline": best_recon, "rows": summary}
+            oracle = [r for r in mode_runs if r["method"] == ORACLE]
+            if oracle:  # the floor oracle trained for the budget's steps, its time not charged
+                floor = median([r["final_param_error"] for r in oracle])
+                out["reconstruction_summary"][mode].update(
+                    floor_rmse=floor, floor_steps=median([float(r["steps"]) for r in oracle]),
+                    bound=summary[best_recon]["recon_rmse"] / floor if floor > 0 else None)
         primary = next(iter(recon))
         for m in methods:
             rows[m].update(out["reconstruction_summary"][primary]["rows"][m], recon_grad_paths=primary)
         out["best_recon_baseline"] = out["reconstruction_summary"][primary]["best_baseline"]
     return out
+
+
+def file_stem(scene: str) -> str:
+    """A scene's name in file names (a held-out spec's ``:`` become ``_``)."""
+    return scene.replace(":", "_")
+
+
+def _heldout_line(scene: dict[str, Any]) -> list[str]:
+    """The note under a held-out scene's heading (none for a built-in scene)."""
+    h = scene.get("heldout")
+    if not h:
+        return []
+    kind = "light-bound" if h["light_bound"] else "not light-bound: reuse has little to gain and must not lose"
+    return [f"Held-out scene (family {h['family']}, seed {h['seed']}: no setting was tuned against it; {kind}).", ""]
 
 
 def _oracle_counts(cfg: dict[str, Any]) -> str:
@@ -249,7 +296,8 @@ def tables(results: dict[str, Any]) -> str:
          "sqrt(max(e² − floor², 0)). Equal time: every method's spp raised to the seconds per step of the slower ReSTIR variant "
          "at equal samples, burn-in charged over the gradient steps; a baseline's equal-time error is read at exactly that budget "
          "from its runs at the whole spps on either side (1/e², the effective sample count, linear in time; its spp column gives "
-         "the nearer whole spp); gain = the best baseline's equal-time error / the method's; "
+         "the nearer whole spp); gain = the best baseline's equal-time error / the method's (best of direct, B.1 and B.2: "
+         "no reuse, unbiased gradients); "
          "'of possible' = the best baseline's error / the floor under the method (the most any light sampler can gain). "
          f"Reconstruction: the trainer, Adam lr {cfg['lr']}, L2, {spp} spp for every method, the slower ReSTIR's wall time "
          f"for {cfg['recon_steps']} steps (burn-in included) for all; texture RMSE after it, median of {cfg['recon_seeds']} seed(s); "
@@ -264,7 +312,7 @@ def tables(results: dict[str, Any]) -> str:
         methods, restirs = methods_in(rows)
         recon = "recon_rmse" in rows[methods[0]]
         ref = scene["reference"]
-        lines += ["", f"#### {name}", "",
+        lines += ["", f"#### {name}", "", *_heldout_line(scene),
                   (f"Floor at {spp} spp: {fmt(rows[ORACLE]['floor'])} (oracle errors: "
                    + ", ".join(f"{m} candidates {fmt(e)}" for m, e in sorted(rows[ORACLE].get("oracle_errors", {}).items(), key=lambda kv: int(kv[0])))
                    + f"); reference relative SE {fmt(ref['relative_se'])} (removed from "
@@ -311,14 +359,21 @@ def tables(results: dict[str, Any]) -> str:
                             [[m, *[f"{fmt(v['rows'][m]['recon_rmse'])} ({fmt(v['rows'][m]['recon_steps'])})" for v in modes.values()],
                               *[v["rows"][m]["recon_ratio_to_best_baseline"] for v in modes.values()],
                               *[v["rows"][m]["train_step_seconds"] for v in modes.values()]] for m in methods])
+        primary = next(iter(modes.values()), {})
+        if primary.get("bound") is not None:
+            lines += ["", f"Reconstruction bound: the floor oracle ({_oracle_counts(cfg).split(' and ')[-1]} candidates, no reuse) "
+                      f"trained {fmt(primary['floor_steps'])} steps (the budget's ReSTIR's), its time not charged, reached RMSE "
+                      f"{fmt(primary['floor_rmse'])}: no light sampler gains more than {fmt(primary['bound'])}x over the best "
+                      f"baseline ({primary['best_baseline']}) in this run."]
         for m in restirs:
             overview.append([name, m, rows[ORACLE]["floor"], rows[m]["relerr_equal_samples"], rows["B.2"]["relerr_equal_samples"],
                              f"{best} {fmt(rows[best]['relerr_equal_time'])}", gain_text(rows[m], best, m),
-                             1.0 / rows[m]["recon_ratio_to_best_baseline"] if recon else None,
+                             1.0 / rows[m]["recon_ratio_to_best_baseline"] if recon else None, primary.get("bound"),
                              rows[m]["step_ratio_to_B.2"], rows[m].get("train_step_ratio_to_direct")])
     lines += ["", "#### Overview", ""]
     lines += markdown_table(["scene", "method", f"floor ({spp} spp)", f"relerr ({spp} spp)", f"B.2 ({spp} spp)", "best baseline eq. time",
-                     "gain (eq. time)", "recon: best baseline RMSE / method's", "step / B.2 step", "train step / direct train step"], overview)
+                     "gain (eq. time)", "recon: best baseline RMSE / method's", "recon bound (oracle)", "step / B.2 step",
+                     "train step / direct train step"], overview)
     if results.get("skipped_scenes"):
         lines += ["", f"Default scenes not run: {', '.join(results['skipped_scenes'])}."]
     return "\n".join(lines) + "\n"
@@ -354,7 +409,7 @@ def plot_results(results: dict[str, Any], out: Path) -> list[Path]:
                title=f"{name}: gradient error vs cost (labels: spp)")
         ax.legend(fontsize=7)
         fig.tight_layout()
-        path = out / f"gradient_{name}.png"
+        path = out / f"gradient_{file_stem(name)}.png"
         fig.savefig(path, dpi=110)
         plt.close(fig)
         written.append(path)
@@ -363,13 +418,15 @@ def plot_results(results: dict[str, Any], out: Path) -> list[Path]:
             fig, axes = plt.subplots(1, len(modes), figsize=(6.5 * len(modes), 4.5), squeeze=False)
             for ax, (mode, runs) in zip(axes[0], modes.items()):
                 for r in runs:
-                    ax.plot(r["elapsed"], r["param_error"], color=colours[r["method"]], alpha=0.85,
-                            label=r["method"] if r["seed"] == 0 else None)
+                    oracle = r["method"] == ORACLE  # its time not charged: drawn against the budget's ReSTIR's steps
+                    ax.plot(r["elapsed"], r["param_error"], color="k" if oracle else colours[r["method"]], alpha=0.85,
+                            linestyle=":" if oracle else "-",
+                            label=(f"{r['method']} (time not charged)" if oracle else r["method"]) if r["seed"] == 0 else None)
                 ax.set(yscale="log", xlabel="training wall time (s)", ylabel="texture RMSE",
                        title=f"{name}: reconstruction vs wall time ({mode} paths)")
                 ax.legend(fontsize=7)
             fig.tight_layout()
-            path = out / f"reconstruction_{name}.png"
+            path = out / f"reconstruction_{file_stem(name)}.png"
             fig.savefig(path, dpi=110)
             plt.close(fig)
             written.append(path)

@@ -42,7 +42,11 @@ class RenderSampler(Protocol):
         """The integrator's seed for a render with ``seed``."""
 
     def check_gradients(self, grad_names: Iterable[str]) -> None:
-        """Raise for parameters whose gradient it cannot give; warn where it approximates."""
+        """Raise for parameters whose gradient it cannot give; warn where it approximates.
+
+        A sampler may also define ``prepare(values, grad_names, sensor, spp, seed)``, called
+        before each render with the render's values and settings (e.g. to choose its settings
+        from a probe of the scene at the first)."""
 
 
 class SamplerRenderOp(BoundRenderOp):

@@ -98,6 +98,9 @@ def render(
     values, grad_names = _args.split_params(scene, params)
     if sampler is not None:
         _check_sampler(scene, sampler, grad_names)
+        prepare = getattr(sampler, "prepare", None)  # e.g. ReSTIRSampler(preset="auto") probes the scene once
+        if prepare is not None:
+            prepare(values, grad_names, settings.sensor, settings.spp, settings.seed)
         image = render_with_sampler_drjit(scene, values, grad_names, settings, sampler)  # (H, W, C)
         return image.permute(2, 0, 1)
     _check_projective_silhouettes(scene, grad_names, settings.sensor)

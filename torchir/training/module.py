@@ -451,6 +451,9 @@ class InverseRenderingModule(pl.LightningModule):
         self._truth = self.ground_truth(explicit_only=not synthetic)
         if self.pixel_mode:  # under DDP the pixel budget and Stage 1 are shared by the processes
             self.sampler.distribute(self.trainer.global_rank, self.trainer.world_size)
+        plan_run = getattr(self.sampler, "plan_run", None)  # ReSTIR "auto" charges its burn-in over the run
+        if plan_run is not None and (self.trainer.max_steps or 0) > 0:
+            plan_run(int(self.trainer.max_steps))
         # trainer.log_dir is a collective under DDP: resolve it here, on every rank, once.
         self._results_dir = Path(self.trainer.log_dir or self.trainer.default_root_dir)
 
