@@ -113,7 +113,8 @@ def one_point_light(resolution: int = 12) -> torchir.Scene:
 
 def _probe(scene: torchir.Scene, key: str, spp: int = 1) -> SceneProbe:
     value = scene.get(key)
-    return auto.probe_scene(scene, {key: value.requires_grad_()}, frozenset({key}), 0, spp, 7)
+    plain = tuple(ReSTIRSampler(scene, preset="b2", candidates=m, burn_in=0) for m in auto.PROBE_CANDIDATES)
+    return auto.probe_scene(scene, {key: value.requires_grad_()}, frozenset({key}), 0, spp, 7, plain)
 
 
 def test_probe_separates_light_from_camera_noise():

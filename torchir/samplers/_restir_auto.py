@@ -129,23 +129,24 @@ class AutoChoice:
 
 
 # ----------------------------------------------------------------------------- the probe
-def probe_scene(scene: Any, values: dict[str, Any], grad_names: frozenset[str], sensor: int, spp: int, seed: int) -> SceneProbe:
+def probe_scene(scene: Any, values: dict[str, Any], grad_names: frozenset[str], sensor: int, spp: int, seed: int,
+                samplers: tuple[Any, Any]) -> SceneProbe:
     """Measure ``scene`` (a :class:`torchir.Scene`) at ``values`` (``{key: tensor}``, as bound by
     the render that asks) with B.2 gradients of ``grad_names`` (the image, when nothing is
-    differentiated) at ``spp``: 4 and 256 candidates on camera rays ``a`` and on rays ``b`` (the
-    light part from each pair, the floor from the two 256s), and 4 again on rays ``c`` for its
-    timing (the first of each count compiles)."""
+    differentiated) at ``spp``, rendered by ``samplers``: RIS without reuse over
+    :data:`PROBE_CANDIDATES` (4 and 256) candidates. 4 and 256 candidates on camera rays ``a`` and
+    on rays ``b`` (the light part from each pair, the floor from the two 256s), and 4 again on
+    rays ``c`` for its timing (the first of each count compiles)."""
     import torch
 
     from ..functions import render
     from ..scene import is_geometry_key
-    from .restir import ReSTIRSampler
 
     started = time.perf_counter()
     names = sorted(grad_names)
-    low, high = (ReSTIRSampler(scene, preset="b2", candidates=m, burn_in=0) for m in PROBE_CANDIDATES)
+    low, high = samplers
 
-    def sample(sampler: ReSTIRSampler, rays: int) -> tuple[Any, float]:
+    def sample(sampler: Any, rays: int) -> tuple[Any, float]:
         leaves = {k: v.detach().clone().requires_grad_(k in grad_names) for k, v in values.items()}
         probe_seed = (seed * 4 + rays) % 2**31
         t0 = time.perf_counter()

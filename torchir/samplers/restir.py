@@ -40,7 +40,7 @@ from typing import Any
 
 from ..integrators.restir_options import PERSISTENT_LIFETIME, PRESETS, ReSTIROptions
 from ..scene import Scene, is_geometry_key
-from ._restir_auto import DEFAULT_PLANNED_STEPS, AutoChoice, choose, probe_scene
+from ._restir_auto import DEFAULT_PLANNED_STEPS, PROBE_CANDIDATES, AutoChoice, choose, probe_scene
 
 __all__ = ["ReSTIRSampler", "ReSTIROptions", "PERSISTENT_LIFETIME"]
 
@@ -148,7 +148,8 @@ class ReSTIRSampler:
             if not isinstance(self.integrator.options, ReSTIROptions) or self.integrator.options.reuse:
                 self.integrator = ReSTIRDirectIntegrator(options=ReSTIROptions.no_reuse())
             return
-        probe = probe_scene(self.scene, values, grad_names, sensor, spp, self.render_seed(seed))
+        plain = tuple(ReSTIRSampler(self.scene, preset="b2", candidates=m, burn_in=0) for m in PROBE_CANDIDATES)
+        probe = probe_scene(self.scene, values, grad_names, sensor, spp, self.render_seed(seed), plain)
         self.choice = _agreed(choose(probe, self.planned_steps, self._pinned))
         self.integrator = ReSTIRDirectIntegrator(options=self.choice.options)
         self._choosing = False
