@@ -259,6 +259,12 @@ def test_options_and_default_scenes():
     assert (q.grad_paths, full.grad_paths) == (["decorrelated"], ["decorrelated"])  # unbiased baselines by default
     assert parse_args(["--grad-paths", "decorrelated,shared"]).grad_paths == ["decorrelated", "shared"]
     assert parse_args(["--grad-paths", "shared"]).grad_paths == ["shared"]
+    half = parse_args(["--lr-half-life", "150", "--recon-oracle"])  # the trainer takes whole steps only
+    assert type(half.lr_half_life) is int and half.lr_half_life == 150 and half.recon_oracle
+    assert parse_args([]).lr_half_life is None and not parse_args([]).recon_oracle
+    from torchir.training import InverseRenderingModule
+
+    InverseRenderingModule(scene="oxalis_lite", resolution=8, lr_half_life=half.lr_half_life)  # accepted as given
     from torchir import Scene
     from torchir.bench.restir import Problem
 

@@ -300,8 +300,10 @@ def tables(results: dict[str, Any]) -> str:
          "no reuse, unbiased gradients); "
          "'of possible' = the best baseline's error / the floor under the method (the most any light sampler can gain). "
          f"Reconstruction: the trainer, Adam lr {cfg['lr']}, L2, {spp} spp for every method, the slower ReSTIR's wall time "
-         f"for {cfg['recon_steps']} steps (burn-in included) for all; texture RMSE after it, median of {cfg['recon_seeds']} seed(s); "
-         f"the samplers' gradient paths: {', '.join(cfg['grad_paths'])} (the main table, gradient error included: "
+         f"for {cfg['recon_steps']} steps (burn-in included) for all; texture RMSE after it, median of {cfg['recon_seeds']} seed(s)"
+         + (f", targets rendered at {cfg['target_spp']} spp by the scene's own integrator (their noise is the RMSE every fit "
+            "stalls at); " if cfg.get("target_spp") else "; ")
+         + f"the samplers' gradient paths: {', '.join(cfg['grad_paths'])} (the main table, gradient error included: "
          f"{cfg['grad_paths'][0]}; shared paths correlate the image and its gradient, a bias of the L2 loss that grows with "
          "the image noise; decorrelated paths cost a second resampling pass a step; direct (prb) always uses "
          "decorrelated paths)."),
