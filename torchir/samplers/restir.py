@@ -145,7 +145,7 @@ class ReSTIRSampler:
         from ..integrators.restir_di import ReSTIRDirectIntegrator
 
         if not grad_names:  # nothing differentiated to measure yet: plain RIS until a render that is
-            if not isinstance(self.integrator.options, ReSTIROptions) or self.integrator.options.reuse:
+            if self.integrator.options.reuse:
                 self.integrator = ReSTIRDirectIntegrator(options=ReSTIROptions.no_reuse())
             return
         plain = tuple(ReSTIRSampler(self.scene, preset="b2", candidates=m, burn_in=0) for m in PROBE_CANDIDATES)

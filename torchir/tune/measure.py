@@ -193,7 +193,7 @@ class Bench:
             else:
                 model[key] = value
         sampler = model.get("sampler")
-        if isinstance(sampler, dict) and sampler.get("type") == "restir" and _takes_planned_steps():
+        if isinstance(sampler, dict) and sampler.get("type") == "restir":
             # a trial's trainer runs a few steps: ReSTIR plans its burn-in for the config's run instead
             model["sampler"] = {"planned_steps": self.user.max_steps, **sampler}
         model["preview_spp"] = 1  # no preview is rendered: no logger
@@ -369,15 +369,6 @@ class Bench:
                 "decrease_per_second": decrease_per_second(recorder.times, recorder.errors),
                 "loss_decrease_per_second": decrease_per_second(recorder.times, recorder.losses),
                 "seconds": time.perf_counter() - started}
-
-
-def _takes_planned_steps() -> bool:
-    """Whether this version's ReSTIR sampler takes the run length it plans its burn-in for."""
-    import inspect
-
-    from ..samplers import ReSTIRSampler
-
-    return "planned_steps" in inspect.signature(ReSTIRSampler.__init__).parameters
 
 
 def _unknown_preset(error: BaseException, setting: Setting) -> bool:
