@@ -4,8 +4,8 @@
 #   run(command="bash scripts/gpu_check.sh", carry=[".gpu"], timeout_s=560)
 # Unpacks the carried packages onto PYTHONPATH, prints the versions and whether Dr.Jit's CUDA
 # backend and Mitsuba's OptiX render work, runs the test suite on cuda_ad_rgb (TESTS narrows it;
-# TEST_SECONDS bounds it), then `torchir bench overhead --quick` and the ReSTIR and LOI quick
-# comparisons, each within its own time limit. Everything lands in $OUT (at most 8 files):
+# TEST_SECONDS bounds it), then `torchir bench overhead --quick`, the ReSTIR quick comparison and
+# the LOI loss's cost at 512^2, each within its own time limit. Everything lands in $OUT (at most 8 files):
 # report.md (the summary), tests.log, bench.log and the benchmarks' results JSON.
 # Rehearse it here on the CPU: TORCHIR_VARIANT=llvm_ad_rgb TESTS=tests/functions/test_render.py bash scripts/gpu_check.sh
 set -uo pipefail
@@ -67,10 +67,13 @@ rc=$?
   echo "pytest exit $rc ($([ $rc -eq 124 ] && echo 'stopped at TEST_SECONDS' || echo done)), $(elapsed) s since start"; } >> "$REPORT"
 
 echo -e "\n## Benchmarks ($VARIANT, quick)\n" >> "$REPORT"
-for bench in "overhead" "restir" "loi"; do
-    timeout "${BENCH_SECONDS:-75}" python3 -m torchir.bench.$bench --quick --out "$OUTDIR/bench_$bench" >> "$OUTDIR/bench.log" 2>&1
+# name:arguments. overhead: a torchir step against plain Mitsuba; restir: its step against B.2's at
+# equal samples, and equal-time errors; loi: the loss at 512^2 against a 4-spp render step.
+for spec in "overhead:--quick" "restir:--quick" "loi:--quick --only cost --cost-resolution 512"; do
+    bench=${spec%%:*}
+    timeout "${BENCH_SECONDS:-75}" python3 -m torchir.bench.$bench ${spec#*:} --out "$OUTDIR/bench_$bench" >> "$OUTDIR/bench.log" 2>&1
     rc=$?
-    echo "- $bench: exit $rc$([ $rc -eq 124 ] && echo ' (stopped at BENCH_SECONDS)'), $(elapsed) s since start" >> "$REPORT"
+    echo "- $bench (${spec#*:}): exit $rc$([ $rc -eq 124 ] && echo ' (stopped at BENCH_SECONDS)'), $(elapsed) s since start" >> "$REPORT"
     [ -f "$OUTDIR/bench_$bench/summary.md" ] && cat "$OUTDIR/bench_$bench/summary.md" >> "$REPORT"
     [ -f "$OUTDIR/bench_$bench/results.json" ] && cp "$OUTDIR/bench_$bench/results.json" "$OUTDIR/${bench}.json"
     rm -rf "$OUTDIR/bench_$bench"   # only 8 files come back

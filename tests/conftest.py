@@ -33,6 +33,11 @@ import torch  # noqa: E402
 import torchir
 from tests.helpers import RES
 
+if torchir.backend.device() != "cpu":
+    # On a GPU (scripts/gpu_check.sh) the tests' own tensors are made where the renderer's are;
+    # torchir itself never relies on the default device (tests/core/test_device_audit.py).
+    torch.set_default_device(torchir.backend.device())
+
 # The longest files (worker seconds, measured with the slow tests left out), run first so that
 # `-n 2 --dist loadfile` ends with short files on both workers instead of one worker finishing a
 # long file alone. xdist's own reordering (by number of tests per file) is switched off for this

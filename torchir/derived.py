@@ -45,10 +45,10 @@ def rotation_matrix(angles_deg: torch.Tensor, axis: Optional[torch.Tensor] = Non
     rad = angles_deg * (math.pi / 180.0)
     if axis is not None:
         k = axis / axis.norm()
-        kx = torch.zeros(3, 3, dtype=rad.dtype)
-        kx = kx.index_put((torch.tensor([0, 0, 1, 1, 2, 2]), torch.tensor([1, 2, 0, 2, 0, 1])),
-                          torch.stack([-k[2], k[1], k[2], -k[0], -k[1], k[0]]))
-        eye = torch.eye(3, dtype=rad.dtype)
+        kx = torch.zeros(3, 3, dtype=rad.dtype, device=rad.device)
+        rows, cols = (torch.tensor(i, device=rad.device) for i in ([0, 0, 1, 1, 2, 2], [1, 2, 0, 2, 0, 1]))
+        kx = kx.index_put((rows, cols), torch.stack([-k[2], k[1], k[2], -k[0], -k[1], k[0]]))
+        eye = torch.eye(3, dtype=rad.dtype, device=rad.device)
         return eye + torch.sin(rad[0]) * kx + (1 - torch.cos(rad[0])) * (kx @ kx)
     cx, cy, cz = torch.cos(rad)
     sx, sy, sz = torch.sin(rad)
@@ -64,7 +64,7 @@ def _pivot(pivot: Pivot, points: torch.Tensor) -> torch.Tensor:
         if pivot != "center":
             raise ValueError(f"pivot must be 'center' or a point [x, y, z], got {pivot!r}")
         return 0.5 * (points.min(0).values + points.max(0).values)
-    p = torch.as_tensor(pivot, dtype=torch.float64)
+    p = torch.as_tensor(pivot, dtype=torch.float64, device=points.device)
     if p.shape != (3,):
         raise ValueError(f"pivot must be 'center' or a point [x, y, z], got {pivot!r}")
     return p
@@ -114,11 +114,11 @@ def rigid_transform(
     else:
         shapes = sorted({k.rsplit(".", 1)[0] for k in keys if k.endswith((".vertex_positions", ".to_world"))})
         raise KeyError(f"shape {shape!r} has neither {vertex_key!r} nor {world_key!r}; shapes with a pose: {shapes}")
-    axis = None if rotation_axis is None else torch.as_tensor(rotation_axis, dtype=torch.float64)
+    axis = None if rotation_axis is None else torch.as_tensor(rotation_axis, dtype=torch.float64, device=origin.device)
     if axis is not None and (axis.shape != (3,) or float(axis.norm()) == 0.0):
         raise ValueError(f"rotation_axis must be a non-zero [x, y, z], got {rotation_axis!r}")
     n_angles = 1 if axis is not None else 3
-    rot0 = torch.as_tensor(rotation, dtype=torch.float32).flatten()
+    rot0 = torch.as_tensor(rotation, dtype=torch.float32, device="cpu").flatten()
     rot0 = rot0.expand(n_angles).clone() if rot0.numel() == 1 else rot0
     if rot0.numel() != n_angles:
         raise ValueError(f"rotation must have {n_angles} angle(s) (degrees), got {list(rot0.tolist())}")
@@ -134,7 +134,7 @@ def rigid_transform(
         def to_target(t: torch.Tensor, r: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
             a = linear_part(r, s)
             top = torch.cat([a, (origin - a @ origin + t.double())[:, None]], 1)
-            pose = torch.cat([top, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)], 0)
+            pose = torch.cat([top, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64, device=a.device)], 0)
             return (pose @ m0).float()
 
     return scene.derive(

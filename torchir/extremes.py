@@ -20,6 +20,8 @@ from typing import Any
 
 import torch
 
+from . import backend
+
 __all__ = ["Case", "CASES", "run", "run_case"]
 
 FINITE = "finite"
@@ -135,10 +137,10 @@ def _module(make: Callable[[], Any], inputs: Callable[[], tuple], backward: bool
 
 def _images(*shapes_and_fills: tuple) -> Callable[[], tuple]:
     def make() -> tuple:
-        g = torch.Generator().manual_seed(0)
+        g = torch.Generator(device="cpu").manual_seed(0)
         out = []
         for shape, fill in shapes_and_fills:
-            x = torch.rand(shape, generator=g)
+            x = torch.rand(shape, generator=g, device="cpu")
             out.append(fill(x) if fill is not None else x)
         return tuple(out)
 
@@ -188,8 +190,8 @@ def _trainer_step(**model: Any) -> Callable[[dict], Any]:
         module = InverseRenderingModule(**{"scene": "cbox", "resolution": 8, "spp": 1, **model})
         initial = [p.latent.detach().clone() for p in module.scene_parameters]
         with quiet_lightning():  # the report's console: its tables, not Lightning's notices
-            trainer = pl.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                                 enable_model_summary=False)
+            trainer = pl.Trainer(accelerator=backend.device(), max_steps=2, logger=False, enable_checkpointing=False,
+                                 enable_progress_bar=False, enable_model_summary=False)
             trainer.fit(module, datamodule=ViewDataModule(target_spp=8))
         ctx["trainer_module"] = module
         return [*(p.latent for p in module.scene_parameters), *initial]

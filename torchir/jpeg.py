@@ -38,7 +38,7 @@ from .imageio import srgb_decode, srgb_encode
 __all__ = ["chroma_sampling", "quantization_tables", "subsample_chroma", "jpeg_round_trip", "CodecCorrection"]
 
 # JFIF's R'G'B' -> Y'CbCr (rows Y, Cb, Cr) on values in [0, 1]; the 0.5 offsets of Cb, Cr cancel
-_RGB_TO_YCC = torch.tensor([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]], dtype=torch.float64)
+_RGB_TO_YCC = torch.tensor([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]], dtype=torch.float64, device="cpu")
 _START_OF_FRAME = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
@@ -184,8 +184,8 @@ def quantization_tables(path: str | Path) -> torch.Tensor | None:
                 if len(raw) < 64 * size:
                     return None
                 steps = [int.from_bytes(raw[k * size:(k + 1) * size], "big") for k in range(64)]
-                table = torch.zeros(64, dtype=torch.float64)
-                table[list(_ZIGZAG)] = torch.tensor(steps, dtype=torch.float64)
+                table = torch.zeros(64, dtype=torch.float64, device="cpu")
+                table[list(_ZIGZAG)] = torch.tensor(steps, dtype=torch.float64, device="cpu")
                 tables[table_id] = table.reshape(8, 8)
                 j += 1 + 64 * size
         elif marker in _START_OF_FRAME:

@@ -282,10 +282,11 @@ class Scene:
         return self._info[name]
 
     def get(self, name: str) -> torch.Tensor:
-        """A torch copy of parameter ``name`` as loaded (shape as in the module docstring)."""
+        """A torch copy of parameter ``name`` as loaded (shape as in the module docstring), on the
+        render device (:func:`torchir.backend.device`)."""
         info = self.info(name)
         if name in self.derived:
-            return torch.tensor(self.derived[name].value, dtype=torch.float32).reshape(info.shape)
+            return torch.tensor(self.derived[name].value, dtype=torch.float32, device=backend.device()).reshape(info.shape)
         value = self._base.get(name, self.params[name])
         if _is_transform(value):
             import numpy as np
@@ -298,8 +299,8 @@ class Scene:
         else:
             import numpy as np
 
-            out = torch.as_tensor(np.array(value))
-        return out.detach().clone().reshape(info.shape)
+            out = torch.as_tensor(np.array(value), device="cpu")
+        return out.detach().to(device=backend.device(), copy=True).reshape(info.shape)
 
     def __repr__(self) -> str:
         h, w = self.resolution
@@ -381,7 +382,7 @@ class Scene:
 
         Example:
             >>> ball = Scene.builtin("glossy_ball", resolution=16)   # a point light at "light.position"
-            >>> ball.derive("light.position", lambda h: torch.cat([torch.zeros(1), h, torch.ones(1)]),
+            >>> ball.derive("light.position", lambda h: torch.cat([h.new_zeros(1), h, h.new_ones(1)]),
             ...             {"light.height": [2.0]})
             ['light.height']
         """
@@ -401,9 +402,10 @@ class Scene:
                 raise TypeError(f"derived parameter names are non-empty strings, got {name!r}")
             if name in self.params or name in self.derived:
                 raise ValueError(f"derived parameter name {name!r} is already a parameter of the scene: choose another")
-        values = {n: torch.as_tensor(v, dtype=torch.float32).detach().clone() for n, v in inputs.items()}
+        device = backend.device()  # to_target meets the inputs there, as in expand_derived
+        values = {n: torch.as_tensor(v, dtype=torch.float32, device=device).detach().clone() for n, v in inputs.items()}
         with torch.no_grad():
-            result = torch.as_tensor(to_target(*values.values()))
+            result = torch.as_tensor(to_target(*values.values()), device=device)
         if result.numel() != math.prod(info.shape):
             raise ValueError(
                 f"to_target gives {result.numel()} values for {target!r}, which has shape {info.shape} "

@@ -25,7 +25,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-__all__ = ["gradcheck", "check_gradients", "GradcheckError", "GradcheckReport", "DirectionCheck"]
+from .device_audit import DeviceAudit, device_audit
+
+__all__ = ["gradcheck", "check_gradients", "GradcheckError", "GradcheckReport", "DirectionCheck", "device_audit", "DeviceAudit"]
 
 LossFn = Callable[[dict[str, torch.Tensor], int], torch.Tensor]
 
@@ -75,8 +77,8 @@ class GradcheckReport:
 
 def _direction(tensor: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     """A random unit direction of ``tensor``'s shape (Gaussian, normalised)."""
-    v = torch.randn(tensor.shape, generator=generator, dtype=torch.float64)
-    return (v / v.norm()).to(tensor.dtype)
+    v = torch.randn(tensor.shape, generator=generator, dtype=torch.float64, device="cpu")  # the same on every device
+    return (v / v.norm()).to(device=tensor.device, dtype=tensor.dtype)
 
 
 def check_gradients(
@@ -114,11 +116,11 @@ def check_gradients(
     if not names:
         raise ValueError("no tensor in params requires grad: nothing to check")
     base = {n: t.detach() for n, t in params.items()}
-    generator = torch.Generator().manual_seed(generator_seed)
+    generator = torch.Generator(device="cpu").manual_seed(generator_seed)
     report = GradcheckReport()
     for name in names:
         for k in range(directions):
-            v = _direction(base[name], generator).to(base[name].device)
+            v = _direction(base[name], generator)
             ad, fd = [], []
             for seed in seeds:
                 x = base[name].clone().requires_grad_(True)
@@ -128,7 +130,7 @@ def check_gradients(
                     up = float(fn({**base, name: base[name] + eps * v}, seed))
                     down = float(fn({**base, name: base[name] - eps * v}, seed))
                 fd.append((up - down) / (2 * eps))
-            diff = torch.tensor(ad, dtype=torch.float64) - torch.tensor(fd, dtype=torch.float64)
+            diff = torch.tensor(ad, dtype=torch.float64, device="cpu") - torch.tensor(fd, dtype=torch.float64, device="cpu")
             stderr = float(diff.std(unbiased=True)) / math.sqrt(len(seeds))
             ad_mean, fd_mean = sum(ad) / len(ad), sum(fd) / len(fd)
             tolerance = n_sigma * stderr + atol + rtol * abs(fd_mean)

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 
-import torchir  # noqa: F401  (before torch: sets the OpenMP policy)
+import torchir  # (before torch: sets the OpenMP policy)
 
 import pytest
 from jsonargparse import Namespace
@@ -495,8 +495,9 @@ def test_main_runs(fake_cli):
     assert fake_cli.parameter_sets == []  # reset afterwards
     assert kwargs["args"] == ["fit", "--trainer.max_steps", "3"]
     defaults = kwargs["trainer_defaults"]
-    assert set(defaults) == {"logger", "log_every_n_steps", "max_steps", "enable_model_summary"}
+    assert set(defaults) == {"logger", "accelerator", "log_every_n_steps", "max_steps", "enable_model_summary"}
     assert defaults["log_every_n_steps"] == 1 and defaults["max_steps"] == 100
+    assert defaults["accelerator"] == torchir.backend.device()  # where the variant's images are
     assert defaults["enable_model_summary"] is False  # its table ("Total FLOPs: 0") is not a run's console
     (logger,) = defaults["logger"]  # a class_path default: a lazy instance failed in configs without a logger
     assert logger == {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "results", "name": "torchir"}}

@@ -50,6 +50,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from .. import backend
 from ._common import fmt, markdown_table, median
 from torchir.bench import save_results
 
@@ -238,6 +240,7 @@ def run_configuration(
     pl.seed_everything(seed, verbose=False)
     recorder = _recorder()
     trainer = pl.Trainer(
+        accelerator=backend.device(),
         max_steps=steps if config.expect == "run" else 1,
         max_time=None if max_seconds is None else datetime.timedelta(seconds=max_seconds),
         logger=False,

@@ -98,6 +98,7 @@ from pathlib import Path
 from typing import Any
 
 from torchir.bench import combined, heldout, save_results
+from .. import backend
 from ._common import sync_time
 from .restir_report import (ALL_RESTIRS, AUTO, BASELINES, DEFAULT_RESTIRS, DEFAULT_SCENES, METHODS, ORACLE, ORACLE_LOW,
                             REFERENCE_BATCHES, bracketing_spps, camera_floor, equal_time_error, equal_time_estimate,
@@ -486,6 +487,7 @@ def train(name: str, key: str, method: str, a: argparse.Namespace, seed: int, ta
     pl.seed_everything(seed, verbose=False)
     recorder = combined._recorder()  # step seconds, elapsed time, texture RMSE after each step
     trainer = pl.Trainer(
+        accelerator=backend.device(),
         max_steps=(steps or a.recon_steps) if max_seconds is None else 1000 * a.recon_steps,
         max_time=None if max_seconds is None else datetime.timedelta(seconds=max_seconds),
         logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,

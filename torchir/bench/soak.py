@@ -27,6 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 from torchir.bench import save_results
+from .. import backend
 
 TECHNIQUES: dict[str, dict[str, Any]] = {  # technique -> InverseRenderingModule overrides
     "plain": {},
@@ -72,7 +73,7 @@ def run_one(technique: str, steps: int, warmup: int, resolution: int) -> dict[st
     recorder = Recorder()
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history()
-    trainer = pl.Trainer(max_steps=steps, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+    trainer = pl.Trainer(accelerator=backend.device(), max_steps=steps, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                          enable_model_summary=False, callbacks=[recorder])
     trainer.fit(module, datamodule=ViewDataModule(target_spp=64))
     rows = recorder.rows

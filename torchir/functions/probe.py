@@ -62,7 +62,9 @@ def _lanes(variant: str, grids: tuple[tuple[int, int], ...], passes: int) -> tup
 
 
 def _to_drjit(scene: Scene, name: str, value: torch.Tensor):
-    return scene.to_drjit(name, mi.TensorXf(value.detach().to(torch.float32).contiguous().cpu().numpy()))
+    # through DLPack, on the tensor's own device (no host copy on a GPU; the result is evaluated
+    # before the caller's optimiser can change the tensor in place)
+    return scene.to_drjit(name, mi.TensorXf(value.detach().to(torch.float32).contiguous()))
 
 
 def _one_path(scene: Scene, values: dict[str, torch.Tensor], lanes: tuple, sensor: int, seed: int) -> mi.Color3f:

@@ -260,7 +260,8 @@ def _check_index(index: object, pixel_count: int, sensors: int = 1) -> torch.Ten
         layout = (f"the sensor has {pixel_count} pixels (y * W + x)" if sensors == 1 else
                   f"the {sensors} sensors have {pixel_count} pixels (k * H * W + y * W + x)")
         raise IndexError(f"pixel index out of range: got [{lo}, {hi}], {layout}")
-    return index.to(torch.int32)
+    # on the render device: Dr.Jit takes a host tensor as an LLVM array, which a CUDA variant cannot trace
+    return index.to(device=backend.device(), dtype=torch.int32)
 
 
 def render_pixels(

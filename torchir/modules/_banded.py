@@ -467,12 +467,12 @@ class _Band:
         """The band form of ``m`` (as wide as its widest row's span of nonzeros)."""
         n_out, n_in = m.shape
         nonzero = m.detach().cpu() != 0
-        cols = torch.arange(n_in)
+        cols = torch.arange(n_in, device="cpu")
         first = torch.where(nonzero, cols, n_in).min(1).values
         last = torch.where(nonzero, cols + 1, 0).max(1).values
         length = max(1, int((last - first).clamp(min=0).max()))
-        start = torch.minimum(first, torch.tensor(n_in - length)).clamp(min=0)
-        weights = torch.gather(m.detach().float().cpu(), 1, start[:, None] + torch.arange(length)[None])
+        start = torch.minimum(first, torch.tensor(n_in - length, device="cpu")).clamp(min=0)
+        weights = torch.gather(m.detach().float().cpu(), 1, start[:, None] + torch.arange(length, device="cpu")[None])
         return _Band(start.contiguous(), weights.contiguous(), n_in)
 
 

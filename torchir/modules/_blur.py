@@ -31,7 +31,7 @@ MIN_SCALE = 1e-3  # scales below this (pixels) are treated as 0: identity
 @lru_cache(maxsize=64)
 def _gaussian_matrix(n: int, sigma: float, truncate: float, dtype: torch.dtype, device: str) -> torch.Tensor:
     radius = min(math.ceil(truncate * sigma), n - 1)
-    i = torch.arange(n, dtype=torch.float64)
+    i = torch.arange(n, dtype=torch.float64, device="cpu")
     d = i[:, None] - i[None, :]
     m = torch.exp(-0.5 * (d / sigma) ** 2) * (d.abs() <= radius)
     m = m / m.sum(dim=1, keepdim=True)  # rows sum to 1: border renormalisation of the truncated kernel
@@ -76,8 +76,8 @@ def blur_adjoint(g: torch.Tensor, sigma: float, truncate: float = 3.0) -> torch.
 
 @lru_cache(maxsize=64)
 def _cell_matrices(n: int, sigma: float, cell: int, truncate: float, dtype: torch.dtype, device: str) -> tuple[torch.Tensor, torch.Tensor]:
-    cells = torch.arange(n) // cell
-    indicator = (cells[None, :] == torch.arange(-(-n // cell))[:, None]).to(torch.float64)  # (nc, n)
+    cells = torch.arange(n, device="cpu") // cell
+    indicator = (cells[None, :] == torch.arange(-(-n // cell), device="cpu")[:, None]).to(torch.float64)  # (nc, n)
     mean_rows = indicator @ _gaussian_matrix(n, sigma, truncate, torch.float64, "cpu") / indicator.sum(1, keepdim=True)
     return mean_rows.to(dtype=dtype, device=device), indicator.to(dtype=dtype, device=device)
 

@@ -95,7 +95,7 @@ def _scales(name: str, values: Sequence[float] | float) -> tuple[float, ...]:
 def _weights(weights: Any, n_sigmas: int, n_alphas: int) -> tuple[tuple[float, ...], ...]:
     if weights is None:
         return tuple((1.0,) * n_alphas for _ in range(n_sigmas))
-    rows = torch.as_tensor(weights, dtype=torch.float64)
+    rows = torch.as_tensor(weights, dtype=torch.float64, device="cpu")
     if tuple(rows.shape) != (n_sigmas, n_alphas):
         raise ValueError(f"weights must have shape (len(sigmas), len(alphas)) = {(n_sigmas, n_alphas)}, got {tuple(rows.shape)}")
     if not bool(torch.isfinite(rows).all()) or bool((rows < 0).any()):

@@ -116,7 +116,7 @@ def sigma_term(
             raise ValueError(f"term {i}: pixel weights {tuple(pw.shape)} do not match its cells {(b, c, out_h, out_w)}")
         keep += [array, pw]
         terms[i] = _TermC(len(stages), array, pw.data_ptr(), pw.shape[1] * out_h * out_w, out_h * out_w if pw.shape[1] > 1 else 0, out_h, out_w, float(scale))
-    loss = torch.zeros(b, dtype=torch.float64)
+    loss = torch.zeros(b, dtype=torch.float64, device=j.device)
     grad = torch.zeros_like(j) if want_grad else None
     failed = lib.loi_sigma(j.data_ptr(), z.data_ptr(), e.data_ptr(), b, c, k, h, w, float(beta), terms, len(operators), largest,
                            loss.data_ptr(), grad.data_ptr() if grad is not None else None, torch.get_num_threads())

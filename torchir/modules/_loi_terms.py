@@ -52,7 +52,7 @@ def _edges(cfg: _Config, dtype: torch.dtype, device: torch.device) -> torch.Tens
     """The ``K = N + 2T + 1`` bin edges ``lo + j beta``, ``j = -T .. N + T``."""
     lo, hi = cfg.value_range
     n = max(1, round((hi - lo) / cfg.beta))
-    j = torch.arange(-cfg.tail, n + cfg.tail + 1, dtype=torch.float64)
+    j = torch.arange(-cfg.tail, n + cfg.tail + 1, dtype=torch.float64, device="cpu")
     return (lo + j * cfg.beta).to(dtype=dtype, device=device)
 
 
@@ -140,9 +140,9 @@ def _operator(n: int, alpha: float, cell: int, pool: int, offset: int, n_support
     rows = rows[:, offset : offset + n_support]
     if pool == 1:
         return (rows.to(dtype=dtype, device=device).contiguous(),)
-    members = torch.arange(offset, offset + n_support) // pool
+    members = torch.arange(offset, offset + n_support, device="cpu") // pool
     members = members - members[0]
-    spread = (members[:, None] == torch.arange(int(members[-1]) + 1)[None, :]).to(torch.float64)  # E (n_support, n_pool)
+    spread = (members[:, None] == torch.arange(int(members[-1]) + 1, device="cpu")[None, :]).to(torch.float64)  # E (n_support, n_pool)
     pooled = spread.T / spread.sum(0)[:, None]
     return tuple(m.to(dtype=dtype, device=device).contiguous() for m in (pooled, rows @ spread))
 

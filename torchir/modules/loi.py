@@ -288,6 +288,6 @@ class LOILoss(nn.Module):
         c = 1 if self.cfg.channels == "luminance" else c
         m = _margin(h, w, self.cfg)
         k = len(_edges(self.cfg, torch.float64, torch.device("cpu")))
-        big = b * c * k * (h + 2 * m) * (w + 2 * m) * torch.empty((), dtype=dtype).element_size()
+        big = b * c * k * (h + 2 * m) * (w + 2 * m) * torch.empty((), dtype=dtype, device="cpu").element_size()
         n_s, n_a = len(self.cfg.sigmas), len(self.cfg.alphas)
         return big * ((5 if self.cfg.low_memory else (2 + n_a) * n_s) + n_s)

@@ -77,7 +77,7 @@ class L1Loss(_PixelLoss):
 
     def __init__(self, reduction: str = "mean") -> None:
         super().__init__()
-        _check(torch.zeros(1), torch.zeros(1), reduction)
+        _check(torch.zeros(1, device="cpu"), torch.zeros(1, device="cpu"), reduction)
         self.reduction = reduction
 
     def elementwise(self, rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -101,7 +101,7 @@ class RelativeL2Loss(_PixelLoss):
         super().__init__()
         if eps <= 0:
             raise ValueError(f"eps must be > 0, got {eps}")
-        _check(torch.zeros(1), torch.zeros(1), reduction)
+        _check(torch.zeros(1, device="cpu"), torch.zeros(1, device="cpu"), reduction)
         self.eps, self.reduction = eps, reduction
 
     def elementwise(self, rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -136,7 +136,7 @@ def _build_taps(
 ) -> _Taps:
     with torch.no_grad(), serial_for(target.numel()):
         taps = _target_taps(target, mask, radius, bandwidth, order, weight_mode, var_floor, dtype)
-        choose_table(taps, torch.empty((), dtype=dtype), impl, max_cache_bytes, "target_aware_denoise")
+        choose_table(taps, torch.empty((), dtype=dtype, device=target.device), impl, max_cache_bytes, "target_aware_denoise")
     return taps
 
 

@@ -28,7 +28,7 @@ def _check_map(name: str, value: torch.Tensor, views: int) -> torch.Tensor:
         value = value.unsqueeze(0)
     if value.dim() != 3 or value.shape[0] != views:
         raise ValueError(f"{name} must be ({views}, h, w) (one map per view), got {tuple(value.shape)}")
-    return value.detach().to(torch.float64)
+    return value.detach().to(device="cpu", dtype=torch.float64)  # pmf maps live on the host
 
 
 def _finite_or_zero(name: str, value: torch.Tensor) -> torch.Tensor:
@@ -46,7 +46,9 @@ def denoise_upsample(value: torch.Tensor, size: tuple[int, int], sigma: float) -
     x = value.unsqueeze(1)  # (V, 1, h, w)
     if sigma > 0 and min(x.shape[-2:]) > 1:
         ksize = 2 * max(1, math.ceil(2 * sigma)) + 1
-        x = kornia.filters.gaussian_blur2d(x, (ksize, ksize), (sigma, sigma), border_type="replicate")
+        # sigma as a tensor on x's device: kornia makes a float tuple into a tensor on the default device
+        sigmas = torch.tensor([[sigma, sigma]], dtype=x.dtype, device=x.device)
+        x = kornia.filters.gaussian_blur2d(x, (ksize, ksize), sigmas, border_type="replicate")
     if tuple(x.shape[-2:]) != tuple(size):
         x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
     return x.squeeze(1).clamp_min(0.0)
@@ -104,7 +106,7 @@ def pmf_from_maps(
     if views is None:
         views = p1_levels[0].shape[0] if isinstance(p1_levels[0], torch.Tensor) and p1_levels[0].dim() == 3 else 1
     m = views * size[0] * size[1]
-    uniform = torch.full((views, *size), 1.0 / m, dtype=torch.float64)
+    uniform = torch.full((views, *size), 1.0 / m, dtype=torch.float64, device="cpu")
     combined = torch.zeros_like(uniform)
     weights = [1.0 if multires == "equal" else 4.0**d for d in range(len(p1_levels))]
     fallbacks, gain = 0, 1.0
@@ -143,7 +145,7 @@ def draw(
     (unlike ``torch.multinomial``, no 2^24 category limit), and their realised probabilities
     ``cdf[j] - cdf[j-1]`` (the pmf the draws really follow). ``pdf``: those differences
     precomputed (``torch.diff(cdf, prepend=0)``, the same numbers), read with one gather."""
-    u = torch.rand(count, generator=generator, dtype=torch.float64)
+    u = torch.rand(count, generator=generator, dtype=torch.float64, device=generator.device)
     index = torch.searchsorted(cdf, u, right=True).clamp_(max=cdf.numel() - 1)
     if pdf is not None:
         return index, pdf[index]

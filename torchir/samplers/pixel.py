@@ -103,8 +103,9 @@ def sampled_loss(
     index = torch.cat([k * h * w + pixels for k, (_, _, _, pixels) in enumerate(draws)])
     sensor = listed[0] if len(listed) == 1 else listed
     radiance = render_pixels(scene, params, index, spp=spp, seed=seed(listed[0]), sensor=sensor, spp_grad=spp_grad)
-    target = torch.cat([targets[position].flatten(1).t()[pixels] for position, _, _, pixels in draws])
-    weight = batch.weight[torch.cat([chosen for _, _, chosen, _ in draws])]
+    # the draws live on the host: move the drawn pixels' indices and weights to the images' device
+    target = torch.cat([targets[position].flatten(1).t()[pixels.to(targets[position].device)] for position, _, _, pixels in draws])
+    weight = batch.weight[torch.cat([chosen for _, _, chosen, _ in draws])].to(radiance.device)
     terms = loss.pixel_terms(radiance, target, len(views) * h * w)
     return SampledLoss((weight * terms).sum(), radiance, target, weight)
 
@@ -159,8 +160,8 @@ def _stage1_grids(size: tuple[int, int], scale: int, min_side: int, levels: int)
 
 
 def _rademacher(value: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    bits = torch.randint(0, 2, value.shape, generator=generator)
-    return (2 * bits - 1).to(torch.float32)
+    bits = torch.randint(0, 2, value.shape, generator=generator, device=generator.device)  # drawn on the host
+    return (2 * bits - 1).to(device=value.device, dtype=torch.float32)
 
 
 class PixelSampler:
@@ -253,8 +254,8 @@ class PixelSampler:
         self.refresh_every, self.levels, self.alpha, self.seed = refresh_every, levels, alpha, seed
         self.scale, self.min_side, self.stage1_spp = scale, min_side, stage1_spp
         self.multires, self.sigma, self.fd_step = multires, sigma, fd_step
-        self.generator = torch.Generator().manual_seed(seed)
-        self._set_pmf(torch.full((views, h, w), 1.0 / self.pixel_count, dtype=torch.float64))
+        self.generator = torch.Generator(device="cpu").manual_seed(seed)  # draws on the host; the pmf lives there too
+        self._set_pmf(torch.full((views, h, w), 1.0 / self.pixel_count, dtype=torch.float64, device="cpu"))
         self.last_update: int | None = None  # step of the last refresh
         self.refreshes = 0
         self.rank, self.world = 0, 1  # this process's share of the work (see distribute)
@@ -317,7 +318,7 @@ class PixelSampler:
         if self.world == 1:
             return self.generator
         mixed = (self.seed * 0x9E3779B97F4A7C15 + (self.rank + 1) * 0xBF58476D1CE4E5B9 + self.draw_calls * 0x94D049BB133111EB)
-        return torch.Generator().manual_seed(mixed % 2**63)
+        return torch.Generator(device="cpu").manual_seed(mixed % 2**63)
 
     # ---------------------------------------------------------------------------- draws
     def sample(self, views: Sequence[int] | None = None) -> PixelBatch:
@@ -341,7 +342,7 @@ class PixelSampler:
             per_view = self.resolution[0] * self.resolution[1]
             sub = self.pdf_image()[views].reshape(-1)
             local, prob = _pmf.draw(_pmf.cumulative(sub), n, generator)
-            view_ids = torch.tensor(views, dtype=torch.int64)
+            view_ids = torch.tensor(views, dtype=torch.int64, device=local.device)
             index = view_ids[local // per_view] * per_view + local % per_view
             m = len(views) * per_view
         weight = 1.0 / (n * m * prob)
@@ -418,7 +419,7 @@ class PixelSampler:
         targets = self._check_targets(targets, views)
         loss = _check_loss(loss)
         grids = self.stage1_grids
-        p1 = [torch.zeros(self.views, h, w, dtype=torch.float64) for h, w in grids]
+        p1 = [torch.zeros(self.views, h, w, dtype=torch.float64, device="cpu") for h, w in grids]
         p2 = [torch.zeros_like(m) for m in p1] if self.uses_derivatives else None
         probed = {k: v for k, v in params.items() if v.is_floating_point()}
         from ..functions.probe import probe_pixels  # Dr.Jit side, loaded on first use
@@ -426,15 +427,15 @@ class PixelSampler:
         for i, v in enumerate(views):
             # every process draws every view's tangents and seed: the shared generator stays in step
             tangents = {k: _rademacher(val, self.generator) for k, val in probed.items()} if p2 is not None and probed else None
-            seed = int(torch.randint(0, 2**32 - 1, (1,), generator=self.generator))
+            seed = int(torch.randint(0, 2**32 - 1, (1,), generator=self.generator, device=self.generator.device))
             if i % self.world != self.rank:  # another process probes this view
                 continue
             radiance, derivative = probe_pixels(
                 self.scene, params, grids, passes=self.stage1_spp, seed=seed, sensor=v, tangents=tangents, step=self.fd_step
             )
             for d, (h, w) in enumerate(grids):
-                target = F.interpolate(targets[i][None].float(), size=(h, w), mode="area")
-                p1[d][v] = _adjoint_second_moment(loss, radiance[d], target)
+                target = F.interpolate(targets[i][None].float(), size=(h, w), mode="area").to(radiance[d].device)
+                p1[d][v] = _adjoint_second_moment(loss, radiance[d], target)  # the maps stay on the host
                 if p2 is not None and derivative is not None:
                     p2[d][v] = derivative[d].double().square().sum(1).mean(0)  # p2 = mean_i sum_c t_c^2
         if self.world > 1:
@@ -458,7 +459,7 @@ class PixelSampler:
                 raise ValueError(f"targets must be (C, {expected[0]}, {expected[1]}) images, got {tuple(t.shape)}")
             if not bool(torch.isfinite(t).all()):
                 raise ValueError("targets contain NaN/Inf")
-        return [t.detach().cpu() for t in targets]
+        return [t.detach() for t in targets]
 
     # -------------------------------------------------------------------- diagnostics
     def diagnostics(self) -> dict[str, float]:
@@ -487,8 +488,8 @@ class PixelSampler:
         pmf = state["pmf"]
         if tuple(pmf.shape) != (self.views, *self.resolution):
             raise ValueError(f"state pmf has shape {tuple(pmf.shape)}, this sampler {(self.views, *self.resolution)}")
-        self._set_pmf(pmf.to(torch.float64))
-        self.generator.set_state(state["generator"])
+        self._set_pmf(pmf.to(device="cpu", dtype=torch.float64))
+        self.generator.set_state(state["generator"].cpu())
         self.last_update, self.refreshes = state["last_update"], state["refreshes"]
         self.draw_calls = int(state.get("draw_calls", 0))
         self._signature, self._stats = state["signature"], dict(state["stats"])
@@ -508,11 +509,22 @@ def _check_process_group() -> None:
 
 
 def _sum_over_processes(maps: list[torch.Tensor]) -> None:
-    """Sum ``maps`` in place over the processes of the default ``torch.distributed`` group."""
+    """Sum ``maps`` (host tensors) in place over the processes of the default ``torch.distributed``
+    group; through this process's GPU where the group's backend reduces only CUDA tensors (NCCL)."""
     import torch.distributed as dist
 
+    via = _reduction_device(dist.get_backend())
     for value in maps:
-        dist.all_reduce(value, op=dist.ReduceOp.SUM)
+        moved = value.to(via)
+        dist.all_reduce(moved, op=dist.ReduceOp.SUM)
+        value.copy_(moved)
+
+
+def _reduction_device(group_backend: str) -> torch.device:
+    """Where a tensor must be for ``all_reduce`` on a group with this backend ("nccl": the current GPU)."""
+    if group_backend == "nccl":
+        return torch.device("cuda", torch.cuda.current_device())
+    return torch.device("cpu")
 
 
 def _check_loss(loss: nn.Module | None) -> nn.Module:

@@ -47,7 +47,7 @@ def build(resolution: int | tuple[int, int] | None = None, azimuth: float = 0.0,
     to_target, {name: load-time value})``, declared with :meth:`torchir.Scene.derive` by
     :meth:`torchir.Scene.builtin` (which takes it out before Mitsuba sees the dict)."""
     h, w = resolution_hw(resolution, 32)
-    position = light_position(torch.tensor([float(azimuth)], dtype=torch.float64)).tolist()
+    position = light_position(torch.tensor([float(azimuth)], dtype=torch.float64, device="cpu")).tolist()
     return {
         "type": "scene",
         "integrator": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 1},

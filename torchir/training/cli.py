@@ -36,6 +36,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
+from .. import backend
 from .callbacks import CurvePlotter, ImageWriter
 from .data import ViewDataModule
 from .module import InverseRenderingModule, NonFiniteLossError
@@ -307,6 +308,7 @@ def _run_cli(args: list[str]) -> None:
             # a class_path default, not jsonargparse's lazy_instance: a config without its own
             # logger got the lazy instance itself ("no attribute '_version'")
             "logger": [{"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "results", "name": "torchir"}}],
+            "accelerator": backend.device(),  # "cpu" or "cuda": where the variant's tensors live
             "log_every_n_steps": 1,
             "max_steps": 100,
             "enable_model_summary": False,  # a table of nn.Modules with 0 FLOPs: our parameters are in result.yaml

@@ -5,15 +5,17 @@ from pathlib import Path
 from typing import Optional, Union
 
 import lightning.pytorch as pl
-import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from .. import backend
 from ..functions import render
 from ..imageio import COLORSPACES, ENCODED_SUFFIXES, ColorSpace, is_lossy, read_image
 from ..jpeg import chroma_sampling, quantization_tables
 
 __all__ = ["ViewDataModule", "ViewDataset", "load_image"]
+
+_ON_DEVICE = ("target", "quantisation")  # a batch's entries that meet the renders; the rest is host bookkeeping
 
 
 def load_image(path: str | Path, colorspace: ColorSpace = "auto") -> torch.Tensor:
@@ -61,9 +63,11 @@ class ViewDataset(Dataset):
         return len(self.views)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        return {"view": torch.tensor(self.views[i]), "target": self.targets[i], "lossy": torch.tensor(self.lossy[i]),
-                "chroma": torch.tensor([int(c) for c in self.chroma[i]]),
-                "quantisation": torch.zeros(3, 8, 8) if self.quantisation[i] is None else self.quantisation[i].float()}
+        target, tables = self.targets[i], self.quantisation[i]
+        return {"view": torch.tensor(self.views[i], device="cpu"), "target": target,
+                "lossy": torch.tensor(self.lossy[i], device="cpu"),
+                "chroma": torch.tensor([int(c) for c in self.chroma[i]], device="cpu"),
+                "quantisation": torch.zeros(3, 8, 8, device=target.device) if tables is None else tables.float().to(target.device)}
 
 
 class ViewDataModule(pl.LightningDataModule):
@@ -143,13 +147,14 @@ class ViewDataModule(pl.LightningDataModule):
             missing = [f for f in self.target_files if not Path(f).is_file()]
             if missing:
                 raise FileNotFoundError(f"target image(s) not found: {', '.join(repr(m) for m in missing)}")
-            self.targets = []
-            for v, path in zip(self.views, self.target_files):
-                self.targets.append(self._read_target(path, v, scene))
+            strategy = getattr(self.trainer, "strategy", None)  # moved once here, not in every step's batch
+            device = strategy.root_device if strategy is not None else torch.device(backend.device())
+            self.targets = [self._read_target(path, v, scene).to(device) for v, path in zip(self.views, self.target_files)]
             self.lossy = [is_lossy(path) for path in self.target_files]
             srgb = self.colorspace != "linear"
             self.chroma = [(*chroma_sampling(path), srgb) if lossy else (1, 1, srgb) for path, lossy in zip(self.target_files, self.lossy)]
-            self.quantisation = [quantization_tables(path) if lossy else None for path, lossy in zip(self.target_files, self.lossy)]
+            tables = [quantization_tables(path) if lossy else None for path, lossy in zip(self.target_files, self.lossy)]
+            self.quantisation = [None if t is None else t.to(device) for t in tables]
 
     def _read_target(self, path: str, view: int, scene) -> torch.Tensor:
         """One target file as ``(3, H, W)`` linear radiance, checked against sensor ``view``."""
@@ -173,6 +178,11 @@ class ViewDataModule(pl.LightningDataModule):
         if not bool(torch.isfinite(image).all()):
             raise ValueError(f"target {path!r} contains NaN/Inf pixels")
         return image
+
+    def transfer_batch_to_device(self, batch: dict[str, torch.Tensor], device: torch.device, dataloader_idx: int) -> dict[str, torch.Tensor]:
+        """The images to ``device`` (already there since :meth:`setup`: no copy a step); the views'
+        indices and flags stay on the host, where the step reads them (no device-to-host sync)."""
+        return {key: value.to(device) if key in _ON_DEVICE else value for key, value in batch.items()}
 
     def train_dataloader(self) -> DataLoader:
         world = self.trainer.world_size if self.trainer is not None else 1

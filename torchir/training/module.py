@@ -11,6 +11,7 @@ from lightning.pytorch.loggers import CSVLogger
 import torch
 from torch import nn
 
+from .. import backend
 from .._scene_values import _unbindable_hint
 from ..functions import render
 from ..derived import declare as declare_derived
@@ -441,6 +442,9 @@ class InverseRenderingModule(pl.LightningModule):
                 logger.experiment.metrics[:0] = history
 
     def setup(self, stage: str) -> None:
+        strategy = getattr(self.trainer, "strategy", None)  # (tests drive setup with a stand-in trainer)
+        if strategy is not None:
+            _check_trainer_device(strategy.root_device)
         datamodule = getattr(self.trainer, "datamodule", None)
         synthetic = datamodule is None or getattr(datamodule, "synthetic", True)
         if self.pixel_mode and getattr(datamodule, "saturation", None) is not None:
@@ -497,3 +501,14 @@ class InverseRenderingModule(pl.LightningModule):
 def _tables(table: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
     """A batch entry's JPEG quantisation tables, or None where the target is not a JPEG (zeros)."""
     return None if table is None or not bool(table.any()) else table
+
+
+def _check_trainer_device(device: torch.device) -> None:
+    """Raise unless the trainer's device is the one the renderer reads and writes tensors on."""
+    render_device = backend.device()
+    if device.type != render_device:
+        raise ValueError(
+            f"the trainer runs on {device.type}, but torchir renders with {backend.variant()!r}, whose images "
+            f"and parameters are {render_device} tensors: set trainer.accelerator: {render_device} (the default "
+            f"of `torchir fit`), or choose the variant with TORCHIR_VARIANT"
+        )

@@ -61,23 +61,25 @@ def is_image_file(spec: object) -> bool:
 
 
 def resolve_value(spec: InitValue, shape: torch.Size, scene_value: torch.Tensor, bounds, seed: int, what: str) -> torch.Tensor:
-    """A float32 tensor of ``shape`` from a config value (see :class:`ParameterConfig`)."""
+    """A float32 tensor of ``shape`` from a config value (see :class:`ParameterConfig`), on
+    ``scene_value``'s device."""
+    device = scene_value.device
     if isinstance(spec, str):
         if spec == "scene":
             return scene_value.clone()
         if spec == "random":
-            lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in (bounds if bounds is not None else (0.0, 1.0)))
-            generator = torch.Generator().manual_seed(seed)
-            return lo + (hi - lo) * torch.rand(shape, generator=generator)
+            lo, hi = (torch.as_tensor(b, dtype=torch.float32, device="cpu") for b in (bounds if bounds is not None else (0.0, 1.0)))
+            generator = torch.Generator(device="cpu").manual_seed(seed)  # drawn on the host: the same values on every device
+            return (lo + (hi - lo) * torch.rand(shape, generator=generator, device="cpu")).to(device)
         if is_image_file(spec):
             from ..imageio import read_image
 
             image = read_image(spec).permute(1, 2, 0)  # Mitsuba's (H, W, C)
             if tuple(image.shape) != tuple(shape):
                 raise ValueError(f"{what}: image {spec!r} is {tuple(image.shape)} (H, W, C), the parameter is {tuple(shape)}")
-            return image.contiguous()
+            return image.contiguous().to(device)
         raise ValueError(f"{what} must be a number, a list, 'random', 'scene' or an image file, got {spec!r}")
-    value = torch.as_tensor(spec, dtype=torch.float32)
+    value = torch.as_tensor(spec, dtype=torch.float32, device=device)
     try:
         return value.expand(shape).clone() if value.dim() <= len(shape) else value.reshape(shape)
     except RuntimeError:
@@ -103,7 +105,7 @@ class SceneParameter(nn.Module):
             raise ValueError(f"parameter {key!r}: transform 'log' keeps values positive; drop 'bounds'")
         if config.lr is not None and not (isinstance(config.lr, (int, float)) and config.lr == config.lr and abs(config.lr) != float("inf") and config.lr > 0):
             raise ValueError(f"parameter {key!r}: lr must be a finite number > 0 (gradient descent), got {config.lr!r}")
-        self.bounds = _bounds(key, bounds, initial.shape, config.transform)
+        self.bounds = _bounds(key, bounds, initial.shape, config.transform, initial.device)
         if self.bounds is not None:
             lo, hi = self.bounds
             outside = (initial < lo) | (initial > hi)
@@ -161,9 +163,9 @@ class SceneParameter(nn.Module):
 Bounds = Union[tuple[float, float], tuple[torch.Tensor, torch.Tensor]]
 
 
-def _bounds(key: str, bounds: Optional[tuple], shape: torch.Size, transform: str) -> Optional[Bounds]:
+def _bounds(key: str, bounds: Optional[tuple], shape: torch.Size, transform: str, device: torch.device | str = "cpu") -> Optional[Bounds]:
     """``bounds`` as two floats, or, where either end is a list, two float32 tensors of ``shape``
-    (a list gives one value per entry of the last axis); checked: ``lo < hi``, or ``lo <= hi``
+    (a list gives one value per entry of the last axis) on ``device``; checked: ``lo < hi``, or ``lo <= hi``
     per entry with transform ``none`` (an equal pair pins that entry)."""
     if bounds is None:
         return None
@@ -176,7 +178,7 @@ def _bounds(key: str, bounds: Optional[tuple], shape: torch.Size, transform: str
         return float(lo), float(hi)
     ends = []
     for name, end in (("lo", lo), ("hi", hi)):
-        value = torch.as_tensor(end, dtype=torch.float32)
+        value = torch.as_tensor(end, dtype=torch.float32, device=device)
         try:
             ends.append(value.expand(shape).clone())
         except RuntimeError:

@@ -21,6 +21,7 @@ from typing import Any, Callable, Optional
 
 import torch
 
+from .. import backend
 from .config import UserConfig
 from .space import Setting
 
@@ -231,7 +232,7 @@ class Bench:
         from ..training import NonFiniteLossError
 
         pl.seed_everything(self.seed, verbose=False)
-        trainer = pl.Trainer(max_steps=max_steps, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+        trainer = pl.Trainer(accelerator=backend.device(), max_steps=max_steps, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                              enable_model_summary=False, log_every_n_steps=1, default_root_dir=str(self.workdir),
                              callbacks=callbacks, num_sanity_val_steps=0)
         trainer.fit(module, data)
