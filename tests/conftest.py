@@ -152,7 +152,7 @@ def _fingerprint(scene: torchir.Scene) -> dict[str, str]:
             value = scene.get(name)
         except Exception:  # noqa: BLE001 (a parameter torch cannot hold: not a render's input)
             continue
-        out[name] = hashlib.sha1(value.numpy().tobytes()).hexdigest()
+        out[name] = hashlib.sha1(value.cpu().numpy().tobytes()).hexdigest()
     return out
 
 

@@ -15,9 +15,11 @@ import pytest
 import torch
 from torch import nn
 
+import torchir
 from torchir.scenes import _common
 
 ROOT = Path(__file__).resolve().parents[1]  # the repository
+DEVICE = torch.device(torchir.backend.device())  # where renders are and tests' own tensors are made (tests/conftest.py)
 RES = 16  # every render test uses 16x16 so the kernels compile once
 
 
@@ -80,11 +82,13 @@ def run_in_fresh_process(code: str, timeout: float = 300.0) -> str:
     For tests of frozen render passes that count recordings or compare replays on scenes of
     their own: Dr.Jit 1.5 traverses, and after a frozen call assigns, every instance in its
     registry, so other tests' live scenes are part of each recording (and of its key).
-    In a fresh process only the test's own scenes exist."""
+    In a fresh process only the test's own scenes exist. There as here (tests/conftest.py),
+    torch's factories make their tensors on the renderer's device."""
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
+    preamble = "import torchir, torch\nif torchir.backend.device() != 'cpu':\n    torch.set_default_device(torchir.backend.device())\n"
+    out = subprocess.run([sys.executable, "-c", preamble + code], capture_output=True, text=True, timeout=timeout)
     assert out.returncode == 0, out.stderr[-3000:]
     return out.stdout
 
@@ -137,7 +141,7 @@ def wall_dict(rfilter: str = "box", integrator: str = "prb", channels: int = 3, 
             "to_world": mi.ScalarTransform4f().scale([1.0, H / W, 1.0]),
             "bsdf": {
                 "type": "diffuse",
-                "reflectance": {"type": "bitmap", "data": mi.TensorXf(tex.numpy()), "filter_type": "nearest", "raw": True},
+                "reflectance": {"type": "bitmap", "data": mi.TensorXf(tex.cpu().numpy()), "filter_type": "nearest", "raw": True},
             },
         },
         "sun": {"type": "directional", "direction": [0, 0, -1], "irradiance": {"type": "rgb", "value": math.pi}},
@@ -160,7 +164,7 @@ def as_image1(texture: torch.Tensor) -> torch.Tensor:
 
 
 def weights(seed: int = 0, shape=(3, H, W)) -> torch.Tensor:
-    return torch.rand(*shape, generator=torch.Generator().manual_seed(seed)) + 0.5
+    return torch.rand(*shape, generator=torch.Generator(device=DEVICE).manual_seed(seed)) + 0.5
 
 
 def tea(v0: int, v1: int, rounds: int = 4) -> tuple[int, int]:

@@ -133,8 +133,8 @@ def test_adams_average_keeps_the_noise_that_steps_share():
     (1 + rho beta) / (1 - rho beta) more (2.64 at rho 0.5). 4 000 steps: the variance estimate's
     relative s.e. is about 10 % (about 200 effective samples of the average), so +-30 % is 3 s.e."""
     torch = pytest.importorskip("torch")
-    gen = torch.Generator().manual_seed(4)
-    noise = torch.randn(4000, generator=gen, dtype=torch.float64)
+    gen = torch.Generator(device="cpu").manual_seed(4)
+    noise = torch.randn(4000, generator=gen, dtype=torch.float64, device="cpu")  # host numbers for a host function
     window, ratio = restir_shadow.momentum_variance(noise.tolist(), shuffles=4)
     assert ratio == pytest.approx(1.0, rel=0.3) and window == pytest.approx(0.1 / 1.9, rel=0.3)
     rho, ar = 0.5, torch.empty_like(noise)

@@ -60,16 +60,21 @@ def test_mitsuba_pose_transform_matches_torchir_rigid_transform():
     from torchir.derived import rigid_transform
 
     bench = _bench()
-    torchir.backend.set_variant("llvm_ad_rgb")
-    t, angle = [0.08, 0.0, -0.05], 15.0
-    scene = torchir.Scene.from_file(ROOM / "scene.xml")
-    rigid_transform(scene, "blob", rotation_axis=[0, 1, 0])
-    expected = scene.expand_derived({"blob.translation": torch.tensor(t), "blob.rotation": torch.tensor([angle])})
-    params = mi.traverse(bench.load_mitsuba_scene(ROOM / "scene.xml"))
-    pose = bench.RigidPose(params, "blob", "blob", [0, 1, 0])
-    pose.apply(params, {"blob.translation": mi.Vector3f(*t), "blob.rotation": mi.Float(angle)})
-    moved = np.asarray(params["blob.vertex_positions"].numpy())
-    np.testing.assert_allclose(moved, expected["blob.vertex_positions"].numpy().ravel(), atol=1e-5)
+    variant = torchir.backend.variant()
+    torchir.backend.set_variant("llvm_ad_rgb")  # the benchmark's backend; the session's comes back after
+    try:
+        t, angle = [0.08, 0.0, -0.05], 15.0
+        scene = torchir.Scene.from_file(ROOM / "scene.xml")
+        rigid_transform(scene, "blob", rotation_axis=[0, 1, 0])
+        # on the host, where an LLVM scene's values are (whatever the session's default device)
+        expected = scene.expand_derived({"blob.translation": torch.tensor(t, device="cpu"), "blob.rotation": torch.tensor([angle], device="cpu")})
+        params = mi.traverse(bench.load_mitsuba_scene(ROOM / "scene.xml"))
+        pose = bench.RigidPose(params, "blob", "blob", [0, 1, 0])
+        pose.apply(params, {"blob.translation": mi.Vector3f(*t), "blob.rotation": mi.Float(angle)})
+        moved = np.asarray(params["blob.vertex_positions"].numpy())  # host: a Dr.Jit array
+        np.testing.assert_allclose(moved, expected["blob.vertex_positions"].cpu().numpy().ravel(), atol=1e-5)
+    finally:
+        torchir.backend.set_variant(variant)
 
 
 def test_float_bitmaps_adds_the_format_once():

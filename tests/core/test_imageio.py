@@ -9,6 +9,8 @@ import torch
 import torchir
 from torchir.training import load_image  # how targets are read (it existed before read_image)
 
+from tests.helpers import DEVICE
+
 # Largest slope of the sRGB decoding curve, d(linear)/d(encoded), reached at encoded = 1:
 # (2.4 / 1.055) * ((1 + 0.055) / 1.055) ** 1.4 = 2.275. Half a code step of an n-bit file is
 # 0.5 / (2^n - 1) in encoded units, so the linear value read back is off by at most
@@ -22,8 +24,9 @@ def _bound(bits: int) -> float:
 
 @pytest.fixture()
 def ramp() -> torch.Tensor:
-    """(3, 4, 64) linear radiance: a ramp 0..1 in x, different per channel."""
-    x = torch.linspace(0, 1, 64)
+    """(3, 4, 64) linear radiance: a ramp 0..1 in x, different per channel; on the host, where
+    read_image gives the images it reads."""
+    x = torch.linspace(0, 1, 64, device="cpu")
     return torch.stack([x, x.flip(0), 0.25 + 0.5 * x]).unsqueeze(1).expand(3, 4, 64).contiguous()
 
 
@@ -32,7 +35,7 @@ def _write_png(path, image: torch.Tensor, bits: int = 8) -> None:
     (Mitsuba's own float -> integer conversion is off by up to a code)."""
     import mitsuba as mi
 
-    x = image.permute(1, 2, 0).double().numpy()
+    x = image.permute(1, 2, 0).double().cpu().numpy()
     encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     dtype = np.uint8 if bits == 8 else np.uint16
     bitmap = mi.Bitmap(np.ascontiguousarray(np.rint(encoded * (2**bits - 1)).astype(dtype)), mi.Bitmap.PixelFormat.RGB)
@@ -43,7 +46,7 @@ def _write_png(path, image: torch.Tensor, bits: int = 8) -> None:
 def _write_exr(path, image: torch.Tensor) -> None:
     import mitsuba as mi
 
-    mi.Bitmap(np.ascontiguousarray(image.permute(1, 2, 0).numpy()), mi.Bitmap.PixelFormat.RGB).write(str(path))
+    mi.Bitmap(np.ascontiguousarray(image.permute(1, 2, 0).cpu().numpy()), mi.Bitmap.PixelFormat.RGB).write(str(path))
 
 
 def test_png_16bit_png_and_exr_targets_read_back_as_the_same_linear_image(tmp_path, ramp):
@@ -173,7 +176,7 @@ def test_every_texture_storage_binds_as_float(texture_files, ramp, name):
     info = scene.info(key)
     assert info.type_name == "TensorXf" and info.bindable and info.differentiable
     # the float texture holds the file's linear values, as read_image reads them
-    expected = load_image(texture_files / name).permute(1, 2, 0)
+    expected = load_image(texture_files / name).permute(1, 2, 0).to(DEVICE)
     assert torch.allclose(scene.get(key), expected, atol=1e-6)
     texture = scene.get(key).requires_grad_()
     image = torchir.functions.render(scene, {key: texture}, spp=2, seed=0)
@@ -209,7 +212,7 @@ def _photo(size: int = 64) -> torch.Tensor:
     """(3, size, size) linear radiance of a made-up photo: a dim textured background, an
     over-exposed warm lamp (off the 8x8 block grid), a white disc and a 2-pixel red bar (both
     clipped), a bright patch that did not clip, and a 3x3 box filter so edges hold mixed pixels,
-    as a render's pixel filter leaves them."""
+    as a render's pixel filter leaves them. On the host, as read_image gives the photo."""
     y, x = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32), indexing="ij")
     base = 0.03 + 0.3 * (x / size) * (1 - y / size) + 0.05 * torch.sin(x / 3) * torch.cos(y / 5) ** 2
     image = torch.stack([base, 0.8 * base, 0.6 * base + 0.02])
@@ -217,14 +220,14 @@ def _photo(size: int = 64) -> torch.Tensor:
     image[:, (x - 44.5) ** 2 + (y - 40.5) ** 2 <= 5.5**2] = torch.tensor([3.0, 3.0, 3.2])[:, None]
     image[:, 50:62, 13:15] = torch.tensor([8.0, 2.0, 1.0])[:, None, None]
     image[:, 30:38, 4:12] = 0.8
-    return torch.nn.functional.avg_pool2d(image[None], 3, 1, 1, count_include_pad=False)[0]
+    return torch.nn.functional.avg_pool2d(image[None], 3, 1, 1, count_include_pad=False)[0].cpu()
 
 
 def _write_jpeg(path, image: torch.Tensor, quality: int) -> None:
     """An 8-bit sRGB JPEG at ``quality``, as a camera or an image editor saves a photo."""
     import mitsuba as mi
 
-    x = image.clamp(0, 1).permute(1, 2, 0).double().numpy()
+    x = image.clamp(0, 1).permute(1, 2, 0).double().cpu().numpy()
     encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     bitmap = mi.Bitmap(np.ascontiguousarray(np.rint(encoded * 255).astype(np.uint8)), mi.Bitmap.PixelFormat.RGB)
     bitmap.set_srgb_gamma(True)
@@ -263,7 +266,7 @@ def test_clipped_mask_of_a_png_is_the_top_code(tmp_path):
     mask = clipped_mask(png)
     assert torch.equal(mask, _old_rule(png))
     assert torch.equal(mask[0], (radiance >= 1.0).any(0))  # exactly the pixels that clipped
-    noise = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0)) * 2.2
+    noise = torch.rand(2, 3, 16, 16, generator=torch.Generator(device=DEVICE).manual_seed(0)) * 2.2
     for saturation in (1.0, 2.0):
         assert torch.equal(clipped_mask(noise, saturation), _old_rule(noise, saturation))
         assert torch.equal(clipped_mask(noise[0], saturation), _old_rule(noise[0], saturation))

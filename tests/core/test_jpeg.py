@@ -13,11 +13,11 @@ import torchir
 from torchir.imageio import read_image, to_srgb, write_image
 from torchir.jpeg import CodecCorrection, chroma_sampling, jpeg_round_trip, quantization_tables, subsample_chroma
 
-from tests.helpers import file_target_step
+from tests.helpers import DEVICE, file_target_step
 
 
 def _srgb_bytes(image: torch.Tensor) -> np.ndarray:
-    return np.rint(255 * to_srgb(image).permute(1, 2, 0).double().numpy()).astype(np.uint8)
+    return np.rint(255 * to_srgb(image).permute(1, 2, 0).double().cpu().numpy()).astype(np.uint8)
 
 
 def _write_jpeg_with_mitsuba(path: Path, image: torch.Tensor, quality: int) -> Path:
@@ -53,7 +53,7 @@ def test_chroma_sampling_reads_the_frame_header(tmp_path, room):
 def test_the_filter_is_what_the_codec_did(tmp_path, room, quality):
     """The decoded JPEG is closer to the filtered image than to the image itself (the rest is the
     DCT's quantisation; measured rms 0.0106 -> 0.0060 at q90, 0.0093 -> 0.0042 at q95)."""
-    decoded = read_image(_write_jpeg_with_mitsuba(tmp_path / "photo.jpg", room, quality))
+    decoded = read_image(_write_jpeg_with_mitsuba(tmp_path / "photo.jpg", room, quality)).to(DEVICE)
     rms = lambda a: float((decoded - a).square().mean().sqrt())  # noqa: E731
     assert rms(subsample_chroma(room, (2, 2))) < 0.7 * rms(room)
     assert torch.equal(subsample_chroma(room, (1, 1)), room)
@@ -88,7 +88,7 @@ def test_the_round_trip_is_what_the_codec_did(tmp_path, room, writer, quality):
     else:
         path = tmp_path / "photo.jpg"
         Image.fromarray(_srgb_bytes(room)).save(path, quality=quality, subsampling={"pil444": 0, "pil422": 1}[writer])
-    decoded = read_image(path)
+    decoded = read_image(path).to(DEVICE)
     codes = lambda a: torch.round(255 * to_srgb(a.clamp(0, 1)))  # noqa: E731
     emulated = jpeg_round_trip(room, quantization_tables(path), chroma_sampling(path))
     assert torch.equal(codes(emulated), codes(decoded))
@@ -111,7 +111,7 @@ def test_separate_chroma_tables_are_kept(tmp_path, room):
     tables = quantization_tables(path)
     assert not torch.equal(tables[1], tables[2])
     codes = lambda a: torch.round(255 * to_srgb(a.clamp(0, 1)))  # noqa: E731
-    assert torch.equal(codes(jpeg_round_trip(room, tables, (2, 2))), codes(read_image(path)))
+    assert torch.equal(codes(jpeg_round_trip(room, tables, (2, 2))), codes(read_image(path).to(DEVICE)))
 
 
 def test_filter_gradcheck_and_shapes():

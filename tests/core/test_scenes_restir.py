@@ -124,7 +124,7 @@ def test_occluded_lights_crown_blocker_is_closed_and_mostly_off_the_shadow_outli
     table = edges_of(mesh)
     assert len(table.a) == 6 * rings * (rings - 1)
     assert bool(np.all(table.c1 != table.c2))  # every edge between two faces: a closed surface
-    v = scene.get("blocker.vertex_positions").reshape(-1, 3).double().numpy()
+    v = scene.get("blocker.vertex_positions").reshape(-1, 3).double().cpu().numpy()
     a, b, c1, c2 = (v[i.astype(np.int64)] for i in (table.a, table.b, table.c1, table.c2))
     normal = np.cross(b - a, np.array([-2.6, 0.2, 2.3]) - a)  # the plane through the edge and the small light
     side1, side2 = np.einsum("ij,ij->i", c1 - a, normal), np.einsum("ij,ij->i", c2 - a, normal)

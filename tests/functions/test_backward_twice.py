@@ -13,11 +13,13 @@ import torch
 from torchir.functions import render, render_pixels
 from torchir.functions.render import _RenderOp
 
+from tests.helpers import DEVICE
+
 KEY = "red.reflectance.value"
 
 
 def _weights(shape: torch.Size) -> torch.Tensor:
-    return torch.rand(shape, generator=torch.Generator().manual_seed(3))
+    return torch.rand(shape, generator=torch.Generator(device=DEVICE).manual_seed(3))
 
 
 def test_a_second_render_backward_is_refused_and_the_first_is_right(cbox):

@@ -222,7 +222,7 @@ def test_matches_native_mitsuba_with_gradient_seed_and_spp(frozen, strict_warnin
         dr.enable_grad(params[key])
         params.update()
         ref = mi.render(native.mi_scene, params, spp=2, seed=seed, spp_grad=3, seed_grad=seed + 10)
-        dr.backward(dr.sum(ref * mi.TensorXf(w.permute(1, 2, 0).contiguous().numpy()), axis=None))
+        dr.backward(dr.sum(ref * mi.TensorXf(w.permute(1, 2, 0).contiguous().cpu().numpy()), axis=None))
         assert torch.equal(img.detach(), ref.torch().permute(2, 0, 1))
         torch.testing.assert_close(red.grad, dr.grad(params[key]).torch().reshape(3), rtol=1e-5, atol=1e-7)
         dr.disable_grad(params[key])
@@ -328,7 +328,7 @@ def test_replayable_bindings():
     passes, grey_passes = _passes.passes(scene), _passes.passes(grey)
 
     def bind(s, values):
-        s.bind({k: s.to_drjit(k, mi.TensorXf(v.numpy())) for k, v in values.items()})
+        s.bind({k: s.to_drjit(k, mi.TensorXf(v.cpu().numpy())) for k, v in values.items()})
 
     pose = scene.get(POSE)
     cases = [
@@ -553,9 +553,9 @@ def test_differentiates_a_zero_skips_geometry_in_any_order(wall):
     black = albedo_texture()
     black[0, 0, 2] = 0.0
     native = {
-        TEX: wall.to_drjit(TEX, mi.TensorXf(black.numpy())),
-        POSE: wall.to_drjit(POSE, mi.TensorXf(wall.get(POSE).numpy())),
-        SUN: wall.to_drjit(SUN, mi.TensorXf(torch.ones(3).numpy())),
+        TEX: wall.to_drjit(TEX, mi.TensorXf(black.cpu().numpy())),
+        POSE: wall.to_drjit(POSE, mi.TensorXf(wall.get(POSE).cpu().numpy())),
+        SUN: wall.to_drjit(SUN, mi.TensorXf(torch.ones(3).cpu().numpy())),
     }
     op = SamplerRenderOp()
     op.values = native

@@ -19,7 +19,7 @@ from torchir.functions.probe import probe_pixels
 from torchir.testing import gradcheck
 from torchir.scenes import _common
 
-from tests.helpers import H, SUN, TEX, W, albedo_texture, as_image, as_image1, close, raises, tea, wall_dict, weights
+from tests.helpers import DEVICE, H, SUN, TEX, W, albedo_texture, as_image, as_image1, close, raises, tea, wall_dict, weights
 
 rp = importlib.import_module("torchir.functions.render_pixels")  # the module (the package exports the function)
 SKY = "sky.radiance.value"
@@ -54,7 +54,7 @@ def meter_dict() -> dict:
 @pytest.mark.parametrize("dtype", [torch.int64, torch.int32])
 def test_pixels_and_gradient_in_closed_form(wall, dtype, strict_warnings, settled_registry):
     """Values and gradient of listed pixels (unsorted, repeated), traced, recorded, replayed."""
-    generator = torch.Generator().manual_seed(1)
+    generator = torch.Generator(device=DEVICE).manual_seed(1)
     passes, recordings = rp._pixel_passes(wall), []
     for step in range(5):  # use 1 traces, use 2 records the frozen passes, uses 3-5 replay them
         index = torch.tensor([23, 0, 5, 6, 17, 5, 12, 18], dtype=dtype)
@@ -188,12 +188,12 @@ def test_unfreezable_pixel_gradient_and_probe_fall_back():
 
 def test_per_lane_and_seeded_sampler():
     lanes = rp._per_lane(mi.UInt32, mi.UInt32([7, 3, 9]), 2)
-    assert lanes.numpy().tolist() == [7, 7, 3, 3, 9, 9]
+    assert lanes.numpy().tolist() == [7, 7, 3, 3, 9, 9]  # host: Dr.Jit arrays
     colours = rp._per_lane(mi.Color3f, mi.Color3f([1.0, 2.0], [3.0, 4.0], [5.0, 6.0]), 3)
     assert np.array(colours).T.tolist() == [[1, 3, 5]] * 3 + [[2, 4, 6]] * 3
     a, b, c = rp._seeded_sampler(5, 4), rp._seeded_sampler(5, 4), rp._seeded_sampler(6, 4)
     assert a.wavefront_size() == 4
-    x, y, z = (s.next_1d().numpy() for s in (a, b, c))
+    x, y, z = (s.next_1d().numpy() for s in (a, b, c))  # host: Dr.Jit arrays
     assert np.array_equal(x, y) and not np.array_equal(x, z) and len(set(x.tolist())) == 4
 
 
@@ -268,7 +268,7 @@ def test_pixel_passes_call_sample_as_mitsuba_render_does(strict_warnings):
     class RecordingPRB(PRBIntegrator):
         def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
             depth = kwargs.get("depth", "missing")
-            depth = (type(depth).__name__, depth.numpy().tolist()) if isinstance(depth, mi.UInt32) else depth
+            depth = (type(depth).__name__, depth.numpy().tolist()) if isinstance(depth, mi.UInt32) else depth  # host: a Dr.Jit array
             calls.append((mode, depth, kwargs.get("δaovs", "missing"), δL is None, state_in is None, bool(dr.all(active))))
             return super().sample(mode, scene, sampler, ray, δL, state_in, active, **kwargs)
 
@@ -366,7 +366,7 @@ def test_grid_lanes():
     lanes = probe._lanes(torchir.backend.variant(), ((2, 3), (1, 2)), 2)
     assert lanes is probe._lanes(torchir.backend.variant(), ((2, 3), (1, 2)), 2)
     assert all(isinstance(a, mi.Float) for a in lanes)
-    assert [a.numpy().tolist() for a in lanes] == [a.tolist() for a in (xs, ys, ws, hs)]
+    assert [a.numpy().tolist() for a in lanes] == [a.tolist() for a in (xs, ys, ws, hs)]  # host: Dr.Jit arrays
 
 
 @pytest.mark.frozen
@@ -374,7 +374,7 @@ def test_probe_radiance_and_derivative_in_closed_form(wall, strict_warnings, set
     """Three grids (full, half, half again): each probe pixel is the block it covers, the
     derivative along a tangent is that tangent; traced, recorded, then replayed."""
     grids = [(H, W), (H // 2, W // 2), (H // 2, W // 2)]
-    generator = torch.Generator().manual_seed(2)
+    generator = torch.Generator(device=DEVICE).manual_seed(2)
     one_path, recordings = rp._pixel_passes(wall)._one_path, []
     for step in range(5):
         value = blocks(scale=1 - 0.2 * step).requires_grad_()
@@ -483,7 +483,7 @@ def test_listed_sensors_trace_each_lane_through_its_own_sensor(views3):
 
 def test_listed_sensors_gradient_matches_finite_differences(views3):
     index = torch.tensor([5, 64 + 20, 128 + 33, 128 + 34, 64 + 21, 9])
-    w = torch.rand(6, 3, generator=torch.Generator().manual_seed(2)) + 0.5
+    w = torch.rand(6, 3, generator=torch.Generator(device=DEVICE).manual_seed(2)) + 0.5
 
     def loss(params, seed):
         return (render_pixels(views3, params, index, spp=16, seed=seed, sensor=[0, 1, 2]) * w).sum()
@@ -496,7 +496,7 @@ def test_listed_sensors_replay_frozen_whatever_the_per_view_counts(views3, settl
     """One wavefront keys its recording on the listed sensors and the total count only: batches
     whose per-view counts change every step replay one recording (per-view passes re-traced)."""
     x = views3.get(MV_KEY).requires_grad_()
-    g = torch.Generator().manual_seed(0)
+    g = torch.Generator(device=DEVICE).manual_seed(0)
     recordings = []
     for step in range(5):
         index = torch.randint(0, 3 * 64, (40,), generator=g)  # new per-view counts every step

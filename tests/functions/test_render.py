@@ -11,13 +11,13 @@ import torchir
 from torchir.functions import render
 from torchir.testing import gradcheck
 
-from tests.helpers import RES
+from tests.helpers import DEVICE, RES
 
 KEY = "red.reflectance.value"
 
 
 def _weights(seed: int = 0) -> torch.Tensor:
-    return torch.rand(3, RES, RES, generator=torch.Generator().manual_seed(seed))
+    return torch.rand(3, RES, RES, generator=torch.Generator(device=DEVICE).manual_seed(seed))
 
 
 def _grad(scene, value, seed, seed_grad=None, weights=None, spp=8):
@@ -46,7 +46,7 @@ def test_equals_native_mitsuba_image_and_gradient():
     dr.enable_grad(params[KEY])
     params.update()
     ref = mi.render(native.mi_scene, params, spp=8, seed=3, seed_grad=11)
-    dr.backward(dr.sum(ref * mi.TensorXf(w.permute(1, 2, 0).contiguous().numpy()), axis=None))
+    dr.backward(dr.sum(ref * mi.TensorXf(w.permute(1, 2, 0).contiguous().cpu().numpy()), axis=None))
 
     assert torch.equal(img.detach(), ref.torch().permute(2, 0, 1))
     torch.testing.assert_close(red.grad, dr.grad(params[KEY]).torch().reshape(3), rtol=1e-5, atol=1e-6)
@@ -341,7 +341,7 @@ def test_render_takes_any_sampler_with_its_own_integrator(cbox, red):
     integrator with this render's cache, the gradient image, seed_grad and spp_grad."""
     sampler = _RecordingSampler(cbox)
     img = render(cbox, {KEY: red}, spp=2, seed=5, spp_grad=3, seed_grad=9, sampler=sampler)
-    expected = torch.as_tensor(mi.render(cbox.mi_scene, seed=6, spp=2).numpy()).permute(2, 0, 1)
+    expected = torch.as_tensor(mi.render(cbox.mi_scene, seed=6, spp=2).numpy(), device=DEVICE).permute(2, 0, 1)  # host: a Dr.Jit array
     torch.testing.assert_close(img.detach(), expected)
     (2.0 * img).sum().backward()
     (call,) = sampler.integrator.calls

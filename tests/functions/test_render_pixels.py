@@ -10,7 +10,7 @@ import torch
 import torchir
 from torchir.functions import render, render_pixels
 
-from tests.helpers import RES, run_in_fresh_process
+from tests.helpers import DEVICE, RES, run_in_fresh_process
 
 KEY = "red.reflectance.value"
 ALL = torch.arange(RES * RES)
@@ -45,7 +45,7 @@ def test_pixel_values_agree_with_render(cbox):
 
 def test_gradient_agrees_with_render(cbox):
     """E[grad of a pixel-subset loss over all pixels] == E[grad of the full-image loss]."""
-    w = torch.rand(RES * RES, 3, generator=torch.Generator().manual_seed(3))
+    w = torch.rand(RES * RES, 3, generator=torch.Generator(device=DEVICE).manual_seed(3))
     R = 24
 
     def grad_subset(seed):
@@ -131,7 +131,7 @@ from torchir.functions.render_pixels import _pixel_passes
 
 key = "red.reflectance.value"
 replayed, fresh = (torchir.Scene.builtin("cbox", resolution={RES}) for _ in range(2))
-generator = torch.Generator().manual_seed(0)
+generator = torch.Generator(device=torchir.backend.device()).manual_seed(0)
 
 def call(scene, index, value, seed):
     red = value.clone().requires_grad_()
@@ -168,6 +168,6 @@ def test_each_view_samples_its_own_shutter_interval():
     sensors = [sensor(0.0, 0.0), sensor(2.0, 3.0), sensor(5.0, 5.0)]
     index = mi.UInt32(dr.arange(mi.UInt32, 3 * 16))
     ray, _ = _pixel_rays(sensors, index, _seeded_sampler(0, 3 * 16))
-    t = torch.tensor(ray.time.numpy()).view(3, 16)
+    t = torch.tensor(ray.time.numpy()).view(3, 16)  # host: a Dr.Jit array
     assert bool((t[0] == 0).all()) and bool((t[2] == 5).all())
     assert bool(((t[1] >= 2) & (t[1] <= 3)).all()) and float(t[1].std()) > 0.1

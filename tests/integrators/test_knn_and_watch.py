@@ -4,6 +4,7 @@ distances, so ties and the strict radius are tested exactly), and the watches on
 without rendering. Written for the mutation audit (scripts/mutation.sh)."""
 from __future__ import annotations
 
+import gc
 import sys
 import time
 
@@ -542,3 +543,31 @@ def test_neighbour_search_passes_windows_and_exclude_self_on_every_path():
     check(s(*args[:5], 1.5, True, layout), brute(P, P, 3, 1.5, True, valid, valid, allowed=_window_rule(np.full(n, 2))), False)
     s.chosen[True] = "kdtree"
     check(s(*args[:5], 1.5, True, layout), want_world)
+
+
+def test_value_reader_reads_again_only_new_variables(monkeypatch):
+    reads = []
+    fingerprint = _scene_watch._fingerprint
+    monkeypatch.setattr(_scene_watch, "_fingerprint", lambda v: reads.append(1) or fingerprint(v))
+    read = _scene_watch.ValueReader()
+    m = np.arange(16, dtype=np.float64).reshape(4, 4)
+    pose = mi.Transform4f(m.tolist())
+    assert read("pose", pose) == tuple(m.ravel()) and read("pose", pose) == tuple(m.ravel()) and len(reads) == 1
+    assert read("pose", mi.Transform4f(m.tolist())) == tuple(m.ravel())  # the same values (Dr.Jit may share their variables)
+    moved = m.copy()
+    moved[0, 3] = 7.0
+    before = len(reads)
+    assert read("pose", mi.Transform4f(moved.tolist())) == tuple(moved.ravel()) and len(reads) == before + 1
+    assert read("other", mi.Transform4f(moved.tolist())) == tuple(moved.ravel())  # keys are separate
+    assert read("count", 3) == (3.0,) and read("count", 4) == (4.0,)  # Python numbers: always read
+
+
+def test_value_reader_is_not_fooled_by_freed_variables():
+    # a value freed and a new one made could reuse its variable indices; the reader keeps the
+    # last value it read alive, so a new value is always read
+    read = _scene_watch.ValueReader()
+    for i in range(50):
+        value = mi.Float(float(i), float(i) + 0.5)
+        assert read("k", value) == (float(i), float(i) + 0.5)
+        del value
+        gc.collect()

@@ -181,14 +181,14 @@ def test_chains_with_a_light_guide_stay_unbiased(ajar):
     """Persistent chains (a quarter of the offsets redrawn a step, so lanes forget and relearn)
     drawing half their candidates from their guides: 12 chains' image means match prb's
     converged image within 4 s.e. (chains' spread and the reference's; together under 3 %)."""
-    imgs = np.stack([render(ajar, {}, spp=4096, seed=10_000 + i).numpy() for i in range(4)])
+    imgs = np.stack([render(ajar, {}, spp=4096, seed=10_000 + i).cpu().numpy() for i in range(4)])
     means = imgs.reshape(4, -1).mean(1)
     ref_mean, ref_se = means.mean(), means.std(ddof=1) / 2.0
     chains = []
     for c in range(12):
         r = ReSTIRSampler(ajar, preset="persistent", candidates=8, burn_in=16, offset_lifetime=4.0, light_guide=0.5,
                           seed=c + 1)
-        chains.append(np.mean([render(ajar, {}, spp=2, seed=s, sampler=r).numpy().mean() for s in range(10)][2:]))
+        chains.append(np.mean([render(ajar, {}, spp=2, seed=s, sampler=r).cpu().numpy().mean() for s in range(10)][2:]))
         assert r.integrator.states[0].guide is not None
     chains = np.array(chains)
     se = math.hypot(chains.std(ddof=1) / math.sqrt(len(chains)), ref_se)

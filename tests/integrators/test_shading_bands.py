@@ -29,6 +29,8 @@ from torchir.integrators import _shading_bands  # noqa: E402
 from torchir.integrators.restir_di import ReSTIRDirectIntegrator  # noqa: E402
 from torchir.welding import mesh_weld  # noqa: E402
 
+from tests.helpers import DEVICE  # noqa: E402
+
 RES = 16
 REF_SEEDS = 8
 STEPS = 32
@@ -55,7 +57,7 @@ def _use_vertex(problem: Problem, world) -> None:
     weld = mesh_weld(mesh)
     p = np.asarray(mesh.vertex_positions_buffer()).reshape(-1, 3)[problem.keep]
     problem.vertex = int(np.argmin(np.linalg.norm(p - np.asarray(world), axis=1)))
-    problem.user_vertex_mask = torch.from_numpy(weld.rep == problem.keep[problem.vertex])
+    problem.user_vertex_mask = torch.from_numpy(weld.rep == problem.keep[problem.vertex]).to(DEVICE)
 
 
 def _b2_estimates(problem: Problem, bands: bool) -> np.ndarray:
@@ -72,7 +74,7 @@ def _b2_estimates(problem: Problem, bands: bool) -> np.ndarray:
         t = torch.zeros(2, requires_grad=True)
         image = render(scene, {KEY: v0 + t[0] * d_t + t[1] * d_v}, spp=SPP, seed=300 + i, sampler=sampler)
         (image * problem.adjoint).sum().backward()
-        out[0, i] = t.grad.numpy()
+        out[0, i] = t.grad.cpu().numpy()
     return out
 
 

@@ -26,12 +26,14 @@ from torchir.modules import (
     target_aware_denoise,
 )
 
+from tests.helpers import DEVICE
+
 D = torch.float64
 BANDS = (0.05, 0.1, 0.1)  # b_rho, b_n, b_d
 
 
 def rand(*shape, seed=0):
-    return torch.rand(*shape, generator=torch.Generator().manual_seed(seed), dtype=D)
+    return torch.rand(*shape, generator=torch.Generator(device=DEVICE).manual_seed(seed), dtype=D)
 
 
 def smooth_gbuffers(H: int, W: int, seed: int) -> torch.Tensor:
@@ -167,7 +169,7 @@ def test_gbuffer_regression_smooths_white_noise_more_than_scaled_columns():
     """The stronger (raw-unit) ridge smooths more: white-noise output std well below the input's,
     and below the old bandwidth-scaled variant (0.766 -> 0.563 measured on 64^2, r = 3)."""
     H = W = 16
-    noise = torch.randn(1, 3, H, W, generator=torch.Generator().manual_seed(0), dtype=D)
+    noise = torch.randn(1, 3, H, W, generator=torch.Generator(device=DEVICE).manual_seed(0), dtype=D)
     guide = smooth_gbuffers(H, W, seed=6)
     ours = gbuffer_regression_denoise(noise, guide, radius=3, clamp_min=None).std()
     old = reference_regression(noise, guide, 3, "truncate",

@@ -20,13 +20,13 @@ from torchir.modules import (
 )
 from torchir.modules.target_aware import target_aware_denoise_reference
 
-from tests.helpers import assert_warned_at
+from tests.helpers import DEVICE, assert_warned_at
 
 D = torch.float64
 
 
 def rand(*shape, seed=0, dtype=D):
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator(device=DEVICE).manual_seed(seed)
     return torch.rand(*shape, generator=g, dtype=dtype)
 
 
@@ -279,7 +279,7 @@ def test_hdr_target_with_emitters():
     emitter = torch.zeros(16, 16, dtype=torch.bool)
     emitter[4:7, 4:7] = True
     target[..., emitter] = 1e4
-    noisy = target * (1 + 0.1 * torch.randn(1, 3, 16, 16, generator=torch.Generator().manual_seed(0)))
+    noisy = target * (1 + 0.1 * torch.randn(1, 3, 16, 16, generator=torch.Generator(device=DEVICE).manual_seed(0)))
     out = target_aware_denoise(noisy, target, radius=3, clamp_min=None)
     assert torch.isfinite(out).all()
     mean = noisy[..., emitter].mean(-1)

@@ -19,13 +19,13 @@ from torchir.modules import (
 )
 from torchir.modules._blur import MIN_SCALE, blur, blur_adjoint, cell_means, gaussian_matrix
 
-from tests.helpers import assert_warned_at
+from tests.helpers import DEVICE, assert_warned_at
 
 D64 = torch.float64
 
 
 def _rand(*shape, seed=0, lo=0.0, hi=1.0, dtype=torch.float32):
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator(device=DEVICE).manual_seed(seed)
     return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=dtype)
 
 
@@ -75,7 +75,7 @@ def test_blur_matrix_defaults_identity_and_device():
     assert (m[0, :4] > 0).all() and (m[0, 4:] == 0).all()  # radius ceil(3 * 1) = 3
     for dtype in (torch.float32, D64):
         eye = gaussian_matrix(5, MIN_SCALE / 2, dtype=dtype)
-        assert eye.dtype == dtype and torch.equal(eye, torch.eye(5, dtype=dtype))
+        assert eye.dtype == dtype and torch.equal(eye, torch.eye(5, dtype=dtype, device="cpu"))
     for sigma in (0.0, 1.0):
         assert gaussian_matrix(5, sigma, dtype=D64, device="meta").device.type == "meta"
 
@@ -86,7 +86,7 @@ def test_cell_means_are_cell_averages_of_the_blur_rows():
     n, s, cell = 12, 1.0, 5
     g = gaussian_matrix(n, s, 3.0, dtype=D64)
     expected = torch.stack([g[0:5].mean(0), g[5:10].mean(0), g[10:12].mean(0)])
-    membership = torch.zeros(3, n)
+    membership = torch.zeros(3, n, device="cpu")  # cell_means builds on the CPU by default
     membership[0, :5], membership[1, 5:10], membership[2, 10:] = 1, 1, 1
     r, p = cell_means(n, s, cell)
     assert r.dtype == p.dtype == torch.float32 and r.device == p.device == torch.device("cpu")
@@ -535,7 +535,7 @@ def test_bad_images():
     with pytest.raises(TypeError, match="floating-point"):
         loi_loss(torch.ones(1, 3, 8, 8, dtype=torch.uint8), torch.ones(1, 3, 8, 8, dtype=torch.uint8))
     with pytest.raises(TypeError, match="^rendered must be a torch.Tensor, got ndarray$"):
-        loi_loss(x.numpy(), x)
+        loi_loss(x.cpu().numpy(), x)
     with pytest.raises(ValueError, match=r"^rendered is empty \(shape \(1, 3, 0, 4\)\)$"):
         loi_loss(torch.rand(1, 3, 0, 4), torch.rand(1, 3, 0, 4))
     with pytest.raises(ValueError, match=r"^rendered has shape \(5, 8, 3\), which looks like Mitsuba's"):
@@ -647,8 +647,8 @@ def test_baseline_argument_errors():
     cases = [
         (lambda: gaussian_pyramid_loss(x, x, reduction="avg"), ValueError, r"^reduction must be one of \('mean', 'sum', 'none'\), got 'avg'$"),
         (lambda: multiscale_l1_loss(x, x[..., :7]), ValueError, r"^rendered and target shapes differ: \(1, 3, 8, 8\) vs \(1, 3, 8, 7\)$"),
-        (lambda: multiscale_l2_loss(x.numpy(), x), TypeError, "^rendered must be a torch.Tensor, got ndarray$"),
-        (lambda: gaussian_pyramid_loss(x, x.numpy()), TypeError, "^target must be a torch.Tensor, got ndarray$"),
+        (lambda: multiscale_l2_loss(x.cpu().numpy(), x), TypeError, "^rendered must be a torch.Tensor, got ndarray$"),
+        (lambda: gaussian_pyramid_loss(x, x.cpu().numpy()), TypeError, "^target must be a torch.Tensor, got ndarray$"),
         (lambda: gaussian_pyramid_loss(x, x, transform="gamma"), ValueError, r"^transform must be one of \['clamp', 'identity', 'log1p', 'reinhard'\] or a callable, got 'gamma'$"),
         (lambda: gaussian_pyramid_loss(x, x, levels=0), ValueError, "^levels must be an int >= 1, got 0$"),
         (lambda: gaussian_pyramid_loss(x, x, levels=True), ValueError, "^levels must be an int >= 1, got True$"),
@@ -754,7 +754,7 @@ def test_cdfs_are_blurred_point_cdfs(border):
     with pytest.raises(ValueError, match=r"^alpha must be finite and >= 0, got \(-2.0,\)$"):
         m.cdfs(img, 1.0, -2.0)
     with pytest.raises(TypeError, match="^img must be a torch.Tensor, got ndarray$"):
-        m.cdfs(img.numpy(), 1.0, 2.0)
+        m.cdfs(img.cpu().numpy(), 1.0, 2.0)
 
 
 def test_memory_estimate_scales_with_its_factors():
@@ -841,8 +841,8 @@ def test_truncate_reaches_every_blur(cell_fraction):
     cdf = lambda t: torch.special.ndtr((edges.view(1, 1, -1, 1, 1) - blur(t, s, tr).unsqueeze(2)) / beta)  # noqa: E731
     d = cdf(x) - cdf(y)
     if cell_fraction:
-        rh, ih = cell_means(12, a, 2, tr, D64, "cpu")
-        rw, iw = cell_means(11, a, 2, tr, D64, "cpu")
+        rh, ih = cell_means(12, a, 2, tr, D64, DEVICE)
+        rw, iw = cell_means(11, a, 2, tr, D64, DEVICE)
         out, weights = rh @ d @ rw.T, ih.sum(1)[:, None] * iw.sum(1)[None, :] / (12 * 11)
     else:
         out, weights = blur(d, a, tr), torch.full((12, 11), 1 / (12 * 11), dtype=D64)

@@ -8,11 +8,13 @@ import torch.nn.functional as F
 
 from torchir.modules import PIXEL_LOSSES, L1Loss, L2Loss, RelativeL2Loss, l1_loss, l2_loss, relative_l2_loss
 
+from tests.helpers import DEVICE
+
 D64 = torch.float64
 
 
 def _pair(shape=(2, 3, 5, 4), seed=0):
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator(device=DEVICE).manual_seed(seed)
     return torch.rand(shape, generator=g, dtype=D64), torch.rand(shape, generator=g, dtype=D64)
 
 
@@ -91,9 +93,9 @@ def test_registry_and_repr():
 def test_bad_arguments():
     r, t = _pair()
     with pytest.raises(TypeError, match="^rendered and target must be torch tensors$"):
-        l1_loss(r.numpy(), t)
+        l1_loss(r.cpu().numpy(), t)
     with pytest.raises(TypeError, match="^rendered and target must be torch tensors$"):
-        l2_loss(r, t.numpy())
+        l2_loss(r, t.cpu().numpy())
     with pytest.raises(ValueError, match=r"^rendered and target shapes differ: \(2, 3, 5, 4\) vs \(2, 3, 5, 3\)"):
         relative_l2_loss(r, t[..., :3])
     for make in (lambda: L1Loss("avg"), lambda: L2Loss("avg"), lambda: RelativeL2Loss(reduction="avg"), lambda: l1_loss(r, t, "avg")):

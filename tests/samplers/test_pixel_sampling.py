@@ -17,7 +17,7 @@ from torchir.functions.probe import probe_pixels
 from torchir.modules import L2Loss
 from torchir.samplers import AdaptivePixelSampler, LossPixelSampler, PixelBatch, UniformPixelSampler, sampled_loss
 
-from tests.helpers import RES, run_in_fresh_process
+from tests.helpers import DEVICE, RES, run_in_fresh_process
 
 KEY = "red.reflectance.value"
 
@@ -70,7 +70,7 @@ def test_stage1_adaptive_pmf_follows_the_parameter(cbox, red):
         assert abs(float(s.pdf.sum()) - 1) < 1e-12 and float(s.pdf.min()) >= 0.1 / RES**2 * (1 - 1e-9)
     # Pixels whose radiance moves with the red albedo (from a finite difference of full renders).
     moved = (render(cbox, {KEY: red.detach() + 0.2}, spp=64, seed=1) - render(cbox, {KEY: red.detach()}, spp=64, seed=1)).abs().sum(0)
-    mask = (moved > moved.mean()).flatten()
+    mask = (moved > moved.mean()).flatten().cpu()  # where the pmf is
     assert float(adaptive.pdf[mask].sum()) > float(eq5.pdf[mask].sum()) + 0.05
     d = adaptive.diagnostics()
     # E6: g = m sum a / (sum sqrt a)^2 >= 1 always, = 1 for a flat a = p1 p2. Here a sits on
@@ -267,7 +267,7 @@ def _fake_probe(calls):
         calls.append(dict(params=params, grids=list(grids), passes=passes, seed=seed, sensor=sensor, tangents=tangents, step=step))
         radiance, derivative = [], []
         for d, (h, w) in enumerate(grids):
-            g = torch.Generator().manual_seed(100 * sensor + d)
+            g = torch.Generator(device=DEVICE).manual_seed(100 * sensor + d)
             radiance.append(torch.rand(passes, 3, h, w, generator=g))
             derivative.append(torch.randn(passes, 3, h, w, generator=g))
         return radiance, (derivative if tangents is not None else None)
@@ -307,7 +307,7 @@ def test_stage1_pmf_is_built_from_the_probe_moments(monkeypatch, cls):
     options = dict(budget=8, levels=1, min_side=8, stage1_spp=3, fd_step=0.03, alpha=0.2, seed=5)
     s = cls(_FakeScene((n, n), 2), **options)
     assert s.stage1_grids == [(8, 8), (4, 4)]
-    targets = torch.rand(2, 3, n, n, generator=torch.Generator().manual_seed(1))
+    targets = torch.rand(2, 3, n, n, generator=torch.Generator(device=DEVICE).manual_seed(1))
     params = {"tex": torch.rand(4, 4, 3, requires_grad=True), "count": torch.tensor([2, 3])}
     started = time.perf_counter()
     s.update(params, targets, None, step=7)  # default loss: L2
@@ -377,11 +377,11 @@ def test_stage1_uses_the_given_per_pixel_loss(monkeypatch):
 
     calls: list[dict] = []
     monkeypatch.setattr(probe_module, "probe_pixels", _fake_probe(calls))
-    target = torch.rand(1, 3, 8, 8, generator=torch.Generator().manual_seed(2))
+    target = torch.rand(1, 3, 8, 8, generator=torch.Generator(device=DEVICE).manual_seed(2))
     options = dict(budget=4, levels=0, min_side=4, sigma=0.0)
     l1 = LossPixelSampler(_FakeScene((8, 8), 1), **options)
     l1.update({}, target, L1Loss(), step=0)
-    torch.testing.assert_close(l1.pdf, torch.full((64,), 1 / 64, dtype=torch.float64), rtol=1e-9, atol=0)
+    torch.testing.assert_close(l1.pdf, torch.full((64,), 1 / 64, dtype=torch.float64, device="cpu"), rtol=1e-9, atol=0)
     l2 = LossPixelSampler(_FakeScene((8, 8), 1), **options)
     l2.update({}, target, L2Loss(), step=0)
     p1, _ = _stage1_maps(calls, target, [0], 1)
@@ -442,7 +442,7 @@ def test_sampled_loss_of_every_pixel_is_the_full_loss(monkeypatch, reduction):
     import torchir.functions as functions
 
     h, w, m = 4, 6, 2 * 4 * 6
-    g = torch.Generator().manual_seed(3)
+    g = torch.Generator(device=DEVICE).manual_seed(3)
     images, targets = torch.rand(2, 3, h, w, generator=g), torch.rand(2, 3, h, w, generator=g)
     calls: list[dict] = []
     monkeypatch.setattr(functions, "render_pixels", _fake_render(calls, images))
@@ -476,7 +476,7 @@ def test_sampled_loss_skips_views_without_draws(monkeypatch):
     import torchir.functions as functions
 
     h, w = 4, 6
-    g = torch.Generator().manual_seed(4)
+    g = torch.Generator(device=DEVICE).manual_seed(4)
     images, targets = torch.rand(3, 3, h, w, generator=g), torch.rand(3, 3, h, w, generator=g)
     calls: list[dict] = []
     monkeypatch.setattr(functions, "render_pixels", _fake_render(calls, images))
@@ -505,7 +505,7 @@ def test_sampled_loss_of_one_view_matches_the_per_view_path(monkeypatch):
     import torchir.functions as functions
 
     h, w = 8, 8
-    g = torch.Generator().manual_seed(5)
+    g = torch.Generator(device=DEVICE).manual_seed(5)
     images, targets = torch.rand(3, 3, h, w, generator=g), torch.rand(3, 3, h, w, generator=g)
     local = torch.randint(0, h * w, (500,), generator=g)  # many repeated pixels
     batch = PixelBatch(h * w + local, torch.rand(500, generator=g))

@@ -19,6 +19,8 @@ from torchir.functions import render
 from torchir.samplers import SAMPLERS, ReSTIRSampler
 from torchir.integrators._knn import NeighbourSearch, ScreenLayout, knn_grid, knn_kdtree, knn_screen
 
+from tests.helpers import DEVICE
+
 RES = 24
 KEY = "canvas.bsdf.reflectance.data"
 SPOT = "spot_left.intensity.value"
@@ -34,7 +36,7 @@ def reference(oxalis) -> tuple[np.ndarray, np.ndarray, float]:
     """Converged image (prb, direct light only), its per-pixel standard error, and the
     relative standard error of its image mean (from the spread of the 4 images' means: the
     per-pixel error averages down over the 576 pixels, ~17x smaller than its mean)."""
-    imgs = np.stack([render(oxalis, {}, spp=512, seed=10_000 + i).numpy() for i in range(4)])
+    imgs = np.stack([render(oxalis, {}, spp=512, seed=10_000 + i).cpu().numpy() for i in range(4)])
     means = imgs.reshape(4, -1).mean(1)
     return imgs.mean(0), imgs.std(0, ddof=1) / 2.0, float(means.std(ddof=1) / 2.0 / means.mean())
 
@@ -51,7 +53,7 @@ def _chains(scene, n_chains, steps, drop, params=None, **options):
     out = []
     for c in range(n_chains):
         r = ReSTIRSampler(scene, seed=c + 1, **options)
-        imgs = [render(scene, params or {}, spp=2, seed=s, sampler=r).numpy() for s in range(steps)]
+        imgs = [render(scene, params or {}, spp=2, seed=s, sampler=r).cpu().numpy() for s in range(steps)]
         out.append(np.mean(imgs[drop:], 0))
     return np.stack(out)
 
@@ -64,7 +66,7 @@ def test_ris_m1_equals_light_sampling_lane_for_lane(oxalis):
     from torchir.integrators._restir_pass import sample_rays
 
     r = ReSTIRSampler(oxalis, preset="b1")
-    img = render(oxalis, {}, spp=1, seed=3, sampler=r).permute(1, 2, 0).numpy()
+    img = render(oxalis, {}, spp=1, seed=3, sampler=r).permute(1, 2, 0).cpu().numpy()
 
     scene = oxalis.mi_scene
     sensor = scene.sensors()[0]
@@ -78,13 +80,13 @@ def test_ris_m1_equals_light_sampling_lane_for_lane(oxalis):
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, si.is_valid())
     fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), si.is_valid())
     nee = weight * (si.emitter(scene).eval(si) + em_weight * fs)
-    hand = develop(nee, 1, RES, RES).numpy()
+    hand = develop(nee, 1, RES, RES).numpy()  # host: a Dr.Jit array
     assert np.abs(img - hand).max() <= 1e-5 * max(1.0, np.abs(hand).max())
 
 
 def test_ris_m1_mean_matches_mitsuba_direct(oxalis):
     r = ReSTIRSampler(oxalis, preset="b1")
-    samples = np.stack([render(oxalis, {}, spp=64, seed=s, sampler=r).numpy() for s in range(8)])
+    samples = np.stack([render(oxalis, {}, spp=64, seed=s, sampler=r).cpu().numpy() for s in range(8)])
     direct = mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
     refs = np.stack([np.array(mi.render(oxalis.mi_scene, integrator=direct, spp=256, seed=500 + s)) for s in range(4)])
     ratio, se = _mean_ratio_and_se(samples, refs.mean(0).transpose(2, 0, 1))
@@ -105,7 +107,7 @@ def test_ris_images_unbiased(oxalis, reference, target):
     (+- 0.19 %, 32 x 256 spp). Block means of 16 pixels have no such tails."""
     ref, ref_se, ref_mean_se = reference
     r = ReSTIRSampler(oxalis, preset="b2", candidates=4, target=target)
-    samples = np.stack([render(oxalis, {}, spp=4, seed=s, sampler=r).numpy() for s in range(16)])
+    samples = np.stack([render(oxalis, {}, spp=4, seed=s, sampler=r).cpu().numpy() for s in range(16)])
     ratio, se = _mean_ratio_and_se(samples, ref)
     # Image means, not pixels: the error of the ratio is that of two independent means.
     assert se < 0.02  # power: a 10 % bias is > 4 standard errors away
@@ -459,16 +461,16 @@ def test_drastic_light_changes_recover(oxalis, reference):
     ref = reference[0]
     spot = oxalis.get(SPOT)
     r = ReSTIRSampler(oxalis, candidates=4, burn_in=4, m_cap=40)
-    before = np.mean([_rel_mse(render(oxalis, {}, spp=2, seed=s, sampler=r).numpy(), ref) for s in range(6)][2:])
+    before = np.mean([_rel_mse(render(oxalis, {}, spp=2, seed=s, sampler=r).cpu().numpy(), ref) for s in range(6)][2:])
     bright, off = {SPOT: spot * 100}, {SPOT: spot * 0}
     for params, seed0 in ((bright, 4242), (off, 4343)):
-        target = render(oxalis, params, spp=2048, seed=seed0).numpy()
+        target = render(oxalis, params, spp=2048, seed=seed0).cpu().numpy()
         errs = []
         for s in range(10):
             img = render(oxalis, params, spp=2, seed=seed0 + 1 + s, sampler=r)
             d = r.diagnostics()
             assert torch.isfinite(img).all() and math.isfinite(d["max_W"]) and d["max_M"] <= 40
-            errs.append(_rel_mse(img.numpy(), target))
+            errs.append(_rel_mse(img.cpu().numpy(), target))
         assert np.mean(errs[4:]) <= 2 * before
     r.reset()
     assert r.steps == {}
@@ -486,10 +488,10 @@ def test_drastic_light_changes_stay_unbiased(oxalis):
         for s in range(3):
             render(oxalis, {}, spp=2, seed=s, sampler=r)
         for name, params in (("bright", bright), ("off", off)):
-            imgs = [render(oxalis, params, spp=2, seed=10 + s, sampler=r).numpy() for s in range(8)]
+            imgs = [render(oxalis, params, spp=2, seed=10 + s, sampler=r).cpu().numpy() for s in range(8)]
             means[name].append(np.mean(imgs, 0))
     for name, params in (("bright", bright), ("off", off)):
-        refs = np.stack([render(oxalis, params, spp=512, seed=7000 + i).numpy() for i in range(4)])
+        refs = np.stack([render(oxalis, params, spp=512, seed=7000 + i).cpu().numpy() for i in range(4)])
         chains = np.stack(means[name])
         assert np.isfinite(chains).all()
         ratio, se = _mean_ratio_and_se(chains, refs.mean(0))
@@ -684,8 +686,8 @@ def test_light_switched_on_after_burn_in_is_found_without_bias(oxalis):
             r = ReSTIRSampler(oxalis, candidates=4, burn_in=4, seed=c + 1, target=target)
             for s in range(2):
                 render(oxalis, {SPOT: spot * 0}, spp=2, seed=s, sampler=r)
-            means[target].append(np.mean([render(oxalis, {}, spp=2, seed=10 + s, sampler=r).numpy() for s in range(8)], 0))
-    refs = np.stack([render(oxalis, {}, spp=512, seed=7100 + i).numpy() for i in range(4)])
+            means[target].append(np.mean([render(oxalis, {}, spp=2, seed=10 + s, sampler=r).cpu().numpy() for s in range(8)], 0))
+    refs = np.stack([render(oxalis, {}, spp=512, seed=7100 + i).cpu().numpy() for i in range(4)])
     ref_means = refs.reshape(4, -1).mean(1)
     for target, chains in means.items():
         ratio, se = _mean_ratio_and_se(np.stack(chains), refs.mean(0))
@@ -714,17 +716,17 @@ def test_torch_bridge_equals_direct_drjit_call(own_oxalis):
 
     b = ReSTIRSampler(oxalis, candidates=4, burn_in=2)
     params = oxalis.params
-    value = mi.TensorXf(tex.numpy())
+    value = mi.TensorXf(tex.cpu().numpy())
     dr.enable_grad(value)
     params[KEY] = value
     params.update()
     image, cache = b.integrator.step(oxalis.mi_scene, 0, 11, 2)
-    grad_in = mi.TensorXf(weights.permute(1, 2, 0).contiguous().numpy())
+    grad_in = mi.TensorXf(weights.permute(1, 2, 0).contiguous().cpu().numpy())
     b.integrator.backward(oxalis.mi_scene, cache, grad_in, 12345, 2)
-    direct = torch.from_numpy(np.array(dr.grad(value)))
-    params[KEY] = mi.TensorXf(tex.numpy())
+    direct = torch.from_numpy(np.array(dr.grad(value))).to(DEVICE)
+    params[KEY] = mi.TensorXf(tex.cpu().numpy())
     params.update()
-    assert torch.allclose(img.permute(1, 2, 0), torch.from_numpy(np.array(image)), rtol=1e-6, atol=0)
+    assert torch.allclose(img.permute(1, 2, 0), torch.from_numpy(np.array(image)).to(DEVICE), rtol=1e-6, atol=0)
     assert torch.allclose(t.grad, direct, rtol=1e-5, atol=1e-7)
 
     # second step on the same sampler: the gradient is still non-zero (set_dirty regression)
@@ -787,7 +789,7 @@ def test_multiview_carry_over_chains_unbiased():
     d["sensor_b"] = torchir.scenes._common.perspective([0.9, 0.3, 2.6], [0, 0, 0], [0, 1, 0], 45.0, RES, RES)
     scene = torchir.Scene.from_dict(d)
     for view in (0, 1):
-        imgs = np.stack([render(scene, {}, spp=512, seed=20_000 + i, sensor=view).numpy() for i in range(4)])
+        imgs = np.stack([render(scene, {}, spp=512, seed=20_000 + i, sensor=view).cpu().numpy() for i in range(4)])
         means = imgs.reshape(4, -1).mean(1)
         ref, ref_mean_se = imgs.mean(0), float(means.std(ddof=1) / 2.0 / means.mean())
         chains = []
@@ -796,7 +798,7 @@ def test_multiview_carry_over_chains_unbiased():
             own = []
             for step in range(8):
                 for v in (0, 1):
-                    img = render(scene, {}, spp=2, seed=step, sensor=v, sampler=r).numpy()
+                    img = render(scene, {}, spp=2, seed=step, sensor=v, sampler=r).cpu().numpy()
                     if v == view and step >= 2:
                         own.append(img)
             chains.append(np.mean(own, 0))
@@ -922,7 +924,7 @@ def test_area_light_m1_equals_light_sampling(area_scene):
     from torchir.integrators._restir_pass import sample_rays
 
     r = ReSTIRSampler(area_scene, preset="b1")
-    img = render(area_scene, {}, spp=1, seed=4, sampler=r).permute(1, 2, 0).numpy()
+    img = render(area_scene, {}, spp=1, seed=4, sampler=r).permute(1, 2, 0).cpu().numpy()
     scene = area_scene.mi_scene
     sensor = scene.sensors()[0]
     sampler = sensor.sampler().fork()
@@ -933,13 +935,13 @@ def test_area_light_m1_equals_light_sampling(area_scene):
     si = scene.ray_intersect(mi.Ray3f(ray))
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, si.is_valid())
     fs = si.bsdf().eval(mi.BSDFContext(), si, si.to_local(ds.d), si.is_valid())
-    hand = develop(weight * (si.emitter(scene).eval(si) + em_weight * fs), 1, RES, RES).numpy()
+    hand = develop(weight * (si.emitter(scene).eval(si) + em_weight * fs), 1, RES, RES).numpy()  # host: a Dr.Jit array
     assert hand.max() > 1.0  # the panel is in view
     assert np.abs(img - hand).max() <= 1e-5 * np.abs(hand).max()
 
 
 def test_area_light_reuse_unbiased(area_scene):
-    refs = np.stack([render(area_scene, {}, spp=512, seed=8000 + i).numpy() for i in range(4)])
+    refs = np.stack([render(area_scene, {}, spp=512, seed=8000 + i).cpu().numpy() for i in range(4)])
     ref = refs.mean(0)
     chains = _chains(area_scene, 10, 8, 2, candidates=4, burn_in=4)
     assert np.isfinite(chains).all()

@@ -19,6 +19,14 @@ from torchir.samplers import (
 H, W = 16, 12
 
 
+@pytest.fixture(autouse=True)
+def _on_the_host():
+    """The samplers keep their pmf, draws and weights on the host (torchir.samplers.pixel); so
+    does this file, on any machine (on a GPU, tests/conftest.py makes the device the default)."""
+    with torch.device("cpu"):
+        yield
+
+
 def _sampler(cls=AdaptivePixelSampler, views=1, **kw):
     return cls(**{"resolution": (H, W), "views": views, "budget": 64, **kw})
 
@@ -26,7 +34,7 @@ def _sampler(cls=AdaptivePixelSampler, views=1, **kw):
 # ------------------------------------------------------------------------------------ pmf
 @pytest.mark.parametrize("multires", ["equal", "paper"])
 def test_pmf_is_valid_and_floored(multires):
-    g = torch.Generator().manual_seed(0)
+    g = torch.Generator(device="cpu").manual_seed(0)
     s = _sampler(views=2, multires=multires, alpha=0.1)
     p1 = [torch.rand(2, 8, 6, generator=g), torch.rand(2, 4, 3, generator=g)]
     p2 = [torch.rand(2, 8, 6, generator=g).float(), torch.rand(2, 4, 3, generator=g)]
@@ -58,7 +66,7 @@ def test_multires_modes_weight_levels_as_specified():
 
 
 def test_single_level_equals_explicit_computation():
-    g = torch.Generator().manual_seed(1)
+    g = torch.Generator(device="cpu").manual_seed(1)
     p1, p2 = torch.rand(1, H, W, generator=g), torch.rand(1, H, W, generator=g)
     s = _sampler(alpha=0.25, sigma=0.0, levels=0)
     s.update_from_maps(p1, p2)
@@ -157,12 +165,12 @@ def test_registry():
 
 # ------------------------------------------------------------------------------ draws
 def test_chi_square_of_draws():
-    g = torch.Generator().manual_seed(3)
+    g = torch.Generator(device="cpu").manual_seed(3)
     pmf = torch.rand(1000, generator=g, dtype=torch.float64) ** 3 + 1e-3
     pmf /= pmf.sum()
     cdf = _pmf.cumulative(pmf)
     n = 1_000_000
-    index, prob = _pmf.draw(cdf, n, torch.Generator().manual_seed(4))
+    index, prob = _pmf.draw(cdf, n, torch.Generator(device="cpu").manual_seed(4))
     torch.testing.assert_close(prob, pmf[index], rtol=1e-9, atol=1e-15)  # weights use the realised pmf
     counts = torch.bincount(index, minlength=1000).double()
     expected = n * pmf
@@ -174,13 +182,13 @@ def test_chi_square_of_draws():
 
 
 def test_draw_reads_the_same_probabilities_from_the_precomputed_pdf():
-    g = torch.Generator().manual_seed(7)
+    g = torch.Generator(device="cpu").manual_seed(7)
     pmf = torch.rand(5000, generator=g, dtype=torch.float64) ** 4 + 1e-9
     pmf[0] = pmf.sum() / 10  # entry 0 (no left neighbour in the CDF) is drawn too
     cdf = _pmf.cumulative(pmf / pmf.sum())
     pdf = torch.diff(cdf, prepend=cdf.new_zeros(1))  # as PixelSampler keeps it
-    index, prob = _pmf.draw(cdf, 50_000, torch.Generator().manual_seed(1))
-    index_pdf, prob_pdf = _pmf.draw(cdf, 50_000, torch.Generator().manual_seed(1), pdf)
+    index, prob = _pmf.draw(cdf, 50_000, torch.Generator(device="cpu").manual_seed(1))
+    index_pdf, prob_pdf = _pmf.draw(cdf, 50_000, torch.Generator(device="cpu").manual_seed(1), pdf)
     assert torch.equal(index_pdf, index) and torch.equal(prob_pdf, prob)  # bit for bit, entry 0 included
     assert bool((index == 0).any())
     s = _sampler(seed=2, budget=300)
@@ -198,7 +206,7 @@ def test_huge_image_beyond_multinomial_limit():
 
 def test_same_seed_same_indices_and_state_round_trip():
     a, b = _sampler(seed=5), _sampler(seed=5)
-    p1 = torch.rand(1, H, W, generator=torch.Generator().manual_seed(0))
+    p1 = torch.rand(1, H, W, generator=torch.Generator(device="cpu").manual_seed(0))
     a.update_from_maps(p1, torch.ones(1, H, W))
     b.update_from_maps(p1, torch.ones(1, H, W))
     assert torch.equal(a.sample().index, b.sample().index)
@@ -227,7 +235,7 @@ def test_view_restriction_and_global_indices():
 def test_view_subset_weights_are_the_conditional_pmf():
     """``w_n = 1 / (N m_V p_V[j_n])`` with ``m_V`` the subset's pixel count and ``p_V`` the pmf
     conditioned on the subset's pixels, computed here independently of ``sample``."""
-    g = torch.Generator().manual_seed(5)
+    g = torch.Generator(device="cpu").manual_seed(5)
     s = _sampler(views=3, budget=200)
     s.update_from_maps(torch.rand(3, H, W, generator=g), torch.rand(3, H, W, generator=g))
     subset = [0, 2]
@@ -247,7 +255,7 @@ def test_view_subset_estimate_is_unbiased_for_the_subset_mean():
     alarm rate ~6e-5; the estimate's spread here is ~1 % of the mean while weights built from
     all 3 views' pixel count (or the subset pmf left unnormalised) are off by a factor 2/3
     (or 3/2): caught at > 30 se."""
-    g = torch.Generator().manual_seed(6)
+    g = torch.Generator(device="cpu").manual_seed(6)
     losses = torch.rand(3 * H * W, generator=g, dtype=torch.float64) ** 2
     s = UniformPixelSampler(resolution=(H, W), views=3, budget=32, seed=2)
     s_adaptive = AdaptivePixelSampler(resolution=(H, W), views=3, budget=32, seed=2)
@@ -276,7 +284,7 @@ def _estimate(sampler: AdaptivePixelSampler, losses: torch.Tensor, draws: int) -
 
 @pytest.mark.parametrize("cls", [UniformPixelSampler, AdaptivePixelSampler])
 def test_weighted_sum_is_unbiased_for_the_mean(cls):
-    g = torch.Generator().manual_seed(11)
+    g = torch.Generator(device="cpu").manual_seed(11)
     losses = torch.rand(2 * H * W, generator=g, dtype=torch.float64) ** 4
     s = cls(resolution=(H, W), views=2, budget=32, seed=1)
     s.update_from_maps(torch.rand(2, H, W, generator=g), torch.rand(2, H, W, generator=g))
@@ -289,7 +297,7 @@ def test_synthetic_gradient_estimator_unbiased_and_variance_matches_theory():
     """Pixels with known per-pixel moments (spec §6.1 item 6): ⟨∂L/∂I_j⟩ ~ N(a_j, sa_j²),
     ⟨dI_j/dθ⟩ ~ N(b_j, sb_j²) with m_θ = 5, independent; the single-draw estimator's mean and
     trace variance follow E3/E5/E8."""
-    g = torch.Generator().manual_seed(2)
+    g = torch.Generator(device="cpu").manual_seed(2)
     m, k = H * W, 5
     a, sa = torch.randn(m, generator=g, dtype=torch.float64), 0.5 * torch.rand(m, generator=g, dtype=torch.float64)
     b = torch.randn(m, k, generator=g, dtype=torch.float64) * torch.logspace(-1, 1, m, dtype=torch.float64)[:, None]
@@ -303,7 +311,7 @@ def test_synthetic_gradient_estimator_unbiased_and_variance_matches_theory():
     batch = [s.sample() for _ in range(draws)]
     index = torch.cat([bt.index for bt in batch])
     weight = torch.cat([bt.weight for bt in batch]).double()
-    noise = torch.Generator().manual_seed(4)
+    noise = torch.Generator(device="cpu").manual_seed(4)
     adj = a[index] + sa[index] * torch.randn(draws, generator=noise, dtype=torch.float64)
     der = b[index] + sb[index] * torch.randn(draws, k, generator=noise, dtype=torch.float64)
     grads = weight[:, None] * adj[:, None] * der  # (draws, k)
@@ -318,7 +326,7 @@ def test_synthetic_gradient_estimator_unbiased_and_variance_matches_theory():
 
 
 def test_variance_ordering_oracle_eq5_uniform():
-    g = torch.Generator().manual_seed(8)
+    g = torch.Generator(device="cpu").manual_seed(8)
     m = H * W
     a = torch.randn(m, generator=g, dtype=torch.float64)
     b = torch.logspace(-1, 1, m, dtype=torch.float64)[torch.randperm(m, generator=g)]  # p2 varies 100x
@@ -431,7 +439,7 @@ def test_upsampling_is_half_pixel_bilinear():
 def test_pmf_defaults_views_and_2d_maps():
     """Documented defaults (alpha 0.1, equal levels, sigma 1); views from p1's first axis, a
     2-D map is one view."""
-    g = torch.Generator().manual_seed(0)
+    g = torch.Generator(device="cpu").manual_seed(0)
     p1, p2 = torch.rand(2, 4, 3, generator=g), torch.rand(2, 4, 3, generator=g)
     pmf, _ = _pmf.pmf_from_maps(p1, p2, (8, 6))
     explicit, _ = _pmf.pmf_from_maps(p1, p2, (8, 6), alpha=0.1, multires="equal", sigma=1.0)
@@ -447,7 +455,7 @@ def test_pmf_defaults_views_and_2d_maps():
 def test_fallback_level_mixes_in_as_uniform_and_is_counted():
     """A zero level contributes the uniform pmf with its level weight: with levels (q, 0),
     ``p = (1 - alpha) (q / sum q + 1/m) / 2 + alpha / m``; ``uniform_levels`` counts them."""
-    g = torch.Generator().manual_seed(1)
+    g = torch.Generator(device="cpu").manual_seed(1)
     q = torch.rand(1, 4, 4, generator=g, dtype=torch.float64)
     pmf, stats = _pmf.pmf_from_maps([q, torch.zeros(1, 2, 2)], None, (4, 4), alpha=0.2, sigma=0.0)
     level = q.sqrt() / q.sqrt().sum()
@@ -480,11 +488,11 @@ def test_cumulative_is_float64_and_draws_invert_it():
     """Inverse-CDF draws from float64 uniforms of the generator (checked with bisect)."""
     import bisect
 
-    pmf = torch.rand(50, generator=torch.Generator().manual_seed(2)) ** 4  # float32 in, float64 out
+    pmf = torch.rand(50, generator=torch.Generator(device="cpu").manual_seed(2)) ** 4  # float32 in, float64 out
     cdf = _pmf.cumulative(pmf)
     assert cdf.dtype == torch.float64 and cdf[-1].item() == 1.0
-    index, _ = _pmf.draw(cdf, 2000, torch.Generator().manual_seed(3))
-    u = torch.rand(2000, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    index, _ = _pmf.draw(cdf, 2000, torch.Generator(device="cpu").manual_seed(3))
+    u = torch.rand(2000, generator=torch.Generator(device="cpu").manual_seed(3), dtype=torch.float64)
     expected = [bisect.bisect_right(cdf.tolist(), v) for v in u.tolist()]
     assert index.tolist() == expected
 
@@ -595,7 +603,7 @@ def test_strategy_names_are_the_registry_names_and_state_checks_them():
 
 def test_state_round_trip_restores_pmf_schedule_and_stats():
     params = {"b": torch.zeros(3), "a": torch.zeros(2, 2)}
-    g = torch.Generator().manual_seed(7)
+    g = torch.Generator(device="cpu").manual_seed(7)
     a = _sampler(views=2, refresh_every=5)
     a.update_from_maps(torch.rand(2, H, W, generator=g), torch.rand(2, H, W, generator=g))
     a.sample()
@@ -652,7 +660,7 @@ def test_sample_view_argument_errors_and_all_views_path():
     assert bool((batch.index < H * W).all()) and int(batch.index.min()) >= 0
     # every view, given explicitly, is the unrestricted draw: same generator stream, same batch
     a, b = _sampler(views=3, seed=4), _sampler(views=3, seed=4)
-    p1 = torch.rand(3, H, W, generator=torch.Generator().manual_seed(3))
+    p1 = torch.rand(3, H, W, generator=torch.Generator(device="cpu").manual_seed(3))
     a.update_from_maps(p1)
     b.update_from_maps(p1)
     x, y = a.sample(), b.sample(views=[2, 1, 0])
@@ -680,7 +688,7 @@ def test_weights_enumerate_to_the_mean_for_a_constructed_pmf():
     w[batch.index] = batch.weight.double()
     assert bool((w > 0).all())
     torch.testing.assert_close(w, 1.0 / (n * m * expected.reshape(-1)), rtol=1e-6, atol=0)
-    f = torch.rand(m, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    f = torch.rand(m, generator=torch.Generator(device="cpu").manual_seed(9), dtype=torch.float64)
     assert float(n * (s.pdf * w * f).sum()) == pytest.approx(float(f.mean()), rel=1e-6)
     # the batch diagnostics are those of its weights: (sum w)^2 / (N sum w^2), and N max w
     d, bw = s.diagnostics(), batch.weight.double()
@@ -692,13 +700,13 @@ def test_weights_enumerate_to_the_mean_for_a_constructed_pmf():
 def test_rademacher_directions():
     from torchir.samplers.pixel import _rademacher
 
-    t = _rademacher(torch.zeros(40, 50, dtype=torch.float64), torch.Generator().manual_seed(0))
+    t = _rademacher(torch.zeros(40, 50, dtype=torch.float64), torch.Generator(device="cpu").manual_seed(0))
     assert t.shape == (40, 50) and t.dtype == torch.float32
     assert set(t.unique().tolist()) == {-1.0, 1.0}
     # mean of 2000 fair signs: sd 1 / sqrt(2000) = 0.022, 5 sd = 0.11
     assert abs(float(t.mean())) < 0.11
     # drawn from the given generator (reproducible with the sampler's seed, not torch's global one)
-    again = _rademacher(torch.zeros(40, 50), torch.Generator().manual_seed(0))
+    again = _rademacher(torch.zeros(40, 50), torch.Generator(device="cpu").manual_seed(0))
     assert torch.equal(t, again)
 
 
@@ -709,7 +717,7 @@ def test_repr_names_the_configuration():
 
 # ------------------------------------------------------------------- several processes
 def _ranks(world: int, budget: int, **kw) -> list[AdaptivePixelSampler]:
-    g = torch.Generator().manual_seed(21)
+    g = torch.Generator(device="cpu").manual_seed(21)
     p1, p2 = torch.rand(world, H, W, generator=g), torch.rand(world, H, W, generator=g)
     samplers = []
     for rank in range(world):
@@ -767,7 +775,7 @@ def test_processes_draw_their_own_pixels_and_resume_their_stream():
 
 def test_averaged_process_estimates_are_unbiased_for_the_mean_over_all_views():
     """What DDP computes: the mean over processes of each one's weighted sum over its views."""
-    g = torch.Generator().manual_seed(12)
+    g = torch.Generator(device="cpu").manual_seed(12)
     losses = torch.rand(2 * H * W, generator=g, dtype=torch.float64) ** 4
     samplers = _ranks(2, 33)  # 17 + 16 draws
     est = []

@@ -104,7 +104,7 @@ def test_jpeg_photo_of_a_lamp_gives_the_pngs_answer(tmp_path):
                                     parameters={"light.emitter.radiance.value": {"init": 1.0, "transform": "none"}})
     radiance = torchir.functions.render(module.scene, {}, spp=64, seed=2)  # the lamp clips: ~34 pixels
     write_image(tmp_path / "photo.png", radiance)
-    x = radiance.clamp(0, 1).permute(1, 2, 0).double().numpy()
+    x = radiance.clamp(0, 1).permute(1, 2, 0).double().cpu().numpy()
     encoded = np.rint(255 * np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)).astype(np.uint8)
     bitmap = mi.Bitmap(np.ascontiguousarray(encoded), mi.Bitmap.PixelFormat.RGB)
     bitmap.set_srgb_gamma(True)
@@ -153,13 +153,13 @@ def test_rigid_transform_of_vertices_matches_mitsubas_transform():
     scene = torchir.Scene.from_file(ROOM)
     names = rigid_transform(scene, "blob", rotation_axis=[0, 1, 0], pivot=[0.1, -0.5, 0.2])
     assert names == ["blob.translation", "blob.rotation", "blob.scale"]
-    v0 = scene.get("blob.vertex_positions").reshape(-1, 3).double().numpy()
+    v0 = scene.get("blob.vertex_positions").reshape(-1, 3).double().cpu().numpy()
     t, angle = [0.08, 0.0, -0.05], 15.0
     expected_t = (mi.ScalarTransform4f().translate(t).translate([0.1, -0.5, 0.2]).rotate([0, 1, 0], angle)
                   .translate([-0.1, 0.5, -0.2]))
     expected = np.array([expected_t @ mi.ScalarPoint3f(*p) for p in v0])
     values = scene.expand_derived({"blob.translation": torch.tensor(t), "blob.rotation": torch.tensor([angle])})
-    got = values["blob.vertex_positions"].reshape(-1, 3).numpy()
+    got = values["blob.vertex_positions"].reshape(-1, 3).cpu().numpy()
     assert np.abs(got - expected).max() < 1e-5
     # the load-time pose is the identity: a render that gives none of them is the scene as loaded
     identity = scene.expand_derived({"blob.rotation": torch.zeros(1)})["blob.vertex_positions"]

@@ -42,7 +42,7 @@ def attach(dm: ViewDataModule, scene: FakeScene, truth=None, world=1) -> SimpleN
 def write_image(path, tensor):
     """A stand-in image file: the tensor's values as ``.npy`` bytes under an image name."""
     with open(path, "wb") as f:
-        np.save(f, tensor.numpy())
+        np.save(f, tensor.cpu().numpy())
     return path
 
 
@@ -167,7 +167,7 @@ def test_view_dataset():
 def test_load_image(tmp_path, reads):
     path = write_image(tmp_path / "a.exr", image(value=0.75))
     loaded = load_image(path)
-    assert torch.equal(loaded, torch.full((3, 2, 3), 0.75))
+    assert torch.equal(loaded, torch.full((3, 2, 3), 0.75, device="cpu"))  # read_image gives host tensors
     load_image(path, "linear")
     assert reads == [(str(path), "auto"), (str(path), "linear")]
 

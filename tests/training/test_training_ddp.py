@@ -68,7 +68,7 @@ def test_ddp_pixel_sampling_shares_budget_and_stage1(tmp_path):
     rows = {}
     for name, extra in (("one", ()), ("two", ("--trainer.strategy", "ddp", "--trainer.devices", "2", "--trainer.accelerator", "cpu"))):
         latents = _multiview_run(tmp_path / name, *sampler, *extra, "--trainer.max_steps", "1", paths_per_step=paths + stage1)
-        assert not torch.allclose(next(iter(latents.values())), torch.tensor(0.5))  # the step moved the texture
+        assert not torch.allclose(next(iter(latents.values())), torch.tensor(0.5, device="cpu"))  # the step moved the texture
         state = torch.load(_run_dir(tmp_path / name, "multiview") / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
         rows[name] = state["torchir_sampler"]
     assert rows["one"]["refreshes"] == rows["two"]["refreshes"] == 1

@@ -28,6 +28,8 @@ from torchir.scene import _unbindable_hint
 from torchir.training import InverseRenderingModule, ParameterConfig
 from torchir.training.module import NonFiniteLossError, _as_config, _from_checkpoint, _to_checkpoint
 
+from tests.helpers import DEVICE
+
 render_module = importlib.import_module("torchir.functions.render")  # the module, not the function it exports
 KEY = "red.reflectance.value"
 GREEN = "green.reflectance.value"
@@ -303,7 +305,8 @@ def test_initial_values_are_checked_as_differentiable_and_stored_detached(monkey
 
 def test_random_init_uses_the_parameters_bounds_and_seed():
     model = make(parameters={KEY: {"init": "random", "bounds": [0.2, 0.4], "seed": 7}})
-    expected = 0.2 + 0.2 * torch.rand(3, generator=torch.Generator().manual_seed(7))
+    # drawn on the host, as torchir draws it (the same values on every device)
+    expected = (0.2 + 0.2 * torch.rand(3, generator=torch.Generator(device="cpu").manual_seed(7), device="cpu")).to(DEVICE)
     torch.testing.assert_close(model.scene_values()[KEY].detach(), expected)
 
 
@@ -900,7 +903,7 @@ def test_checkpoint_conversion_round_trips_numpy_state(tmp_path):
     state = {"a": array, "b": np.float32(2.5), "c": [np.int64(4), (np.zeros(2, dtype=np.int32), "s")], "d": None,
              "e": {"__ndarray__": 1, "other": 2}}
     saved = _to_checkpoint(state)
-    assert set(saved["a"]) == {"__ndarray__"} and torch.equal(saved["a"]["__ndarray__"], torch.tensor([5.0, 4, 3, 2, 1, 0]))
+    assert set(saved["a"]) == {"__ndarray__"} and torch.equal(saved["a"]["__ndarray__"], torch.tensor([5.0, 4, 3, 2, 1, 0], device="cpu"))
     assert type(saved["b"]) is float and saved["b"] == 2.5
     assert type(saved["c"]) is list and saved["c"][0] == 4 and type(saved["c"][0]) is int
     assert type(saved["c"][1]) is tuple and saved["c"][1][1] == "s" and saved["c"][1][0]["__ndarray__"].dtype == torch.int32
@@ -922,7 +925,7 @@ def test_sampler_state_is_saved_and_loaded_with_the_checkpoint(fake_sampler):
     model = make(sampler={"type": "fake"})
     checkpoint = {}
     model.on_save_checkpoint(checkpoint)
-    assert set(checkpoint) == {"torchir_sampler"} and torch.equal(checkpoint["torchir_sampler"]["x"]["__ndarray__"], torch.arange(3.0))
+    assert set(checkpoint) == {"torchir_sampler"} and torch.equal(checkpoint["torchir_sampler"]["x"]["__ndarray__"], torch.arange(3.0, device="cpu"))
     model.on_load_checkpoint(checkpoint)
     (loaded,) = model.sampler.loaded
     assert isinstance(loaded["x"], np.ndarray) and loaded["x"].tolist() == [0.0, 1.0, 2.0]

@@ -19,18 +19,21 @@ import yaml
 import torchir.training.results as results
 from torchir.training.results import INLINE_MAX, _rounded, parameter_entry, write_results
 
+from tests.helpers import DEVICE
+
 
 def test_inline_max():
     assert INLINE_MAX == 16
 
 
 def test_rounded():
-    assert _rounded(torch.tensor([1.23456789])) == 1.23457
-    assert type(_rounded(torch.tensor(2.0))) is float
-    assert _rounded(torch.tensor([[1.0, 123456789.0], [0.000123456789, -2.5]])) == [[1.0, 123457000.0], [0.000123457, -2.5]]
-    assert _rounded(torch.tensor([0.1, 0.2])) == [0.1, 0.2]
-    empty = _rounded(torch.zeros(0))
-    assert empty == []
+    with torch.device("cpu"):  # host values, as parameter_entry gives them
+        assert _rounded(torch.tensor([1.23456789])) == 1.23457
+        assert type(_rounded(torch.tensor(2.0))) is float
+        assert _rounded(torch.tensor([[1.0, 123456789.0], [0.000123456789, -2.5]])) == [[1.0, 123457000.0], [0.000123457, -2.5]]
+        assert _rounded(torch.tensor([0.1, 0.2])) == [0.1, 0.2]
+        empty = _rounded(torch.zeros(0))
+        assert empty == []
 
 
 def test_parameter_entry_inline(tmp_path):
@@ -100,7 +103,7 @@ class FakeModule:
 
 
 def read_image(path):
-    return torch.from_numpy(np.load(path))
+    return torch.from_numpy(np.load(path)).to(DEVICE)
 
 
 @pytest.fixture(autouse=True)
@@ -112,7 +115,7 @@ def images(monkeypatch):
         written.append(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(path, "wb") as f:
-            np.save(f, image.detach().numpy())
+            np.save(f, image.detach().cpu().numpy())
         return path
 
     monkeypatch.setattr(results, "write_image", record)

@@ -106,7 +106,7 @@ def part_a(cfg: Config, problem: Problem, out: Path) -> dict[str, Any]:
             r = gradient_statistics(problem, method, budget, cfg.draws, problem.init, seed=100 + k, sampler=sampler)
             rows.append(r)
             if budget == cfg.budgets[0]:
-                pmfs[method] = sampler.pdf_image()[0].numpy().copy()
+                pmfs[method] = sampler.pdf_image()[0].cpu().numpy().copy()
             print(f"  {budget:.0%} {method:<9} tr {r.trace_all:.3e} (tex {r.trace_tex:.3e}), gain {r.predicted_gain:.2f}, "
                   f"{r.seconds_per_draw * 1e3:.1f} ms/draw, Stage 1 {r.stage1_seconds:.2f} s", flush=True)
     baseline = {r.budget: r for r in rows if r.method == "uniform"}
@@ -125,7 +125,7 @@ def part_c(cfg: Config, out: Path) -> dict[str, Any]:
         sampler = make_sampler(problem, method, budget, seed=300 + k)
         r = gradient_statistics(problem, method, budget, cfg.glossy_draws, problem.init, seed=300 + k, sampler=sampler)
         rows.append(r)
-        pmfs[method] = sampler.pdf_image()[0].numpy().copy()
+        pmfs[method] = sampler.pdf_image()[0].cpu().numpy().copy()
         print(f"  {method:<9} var {r.trace_all:.3e}, gain {r.predicted_gain:.2f}", flush=True)
     full = gradient_statistics(problem, "full", None, cfg.glossy_draws, problem.init, seed=31)
     table, records = variance_table(rows + [full], {budget: rows[0]}, full, full, "alpha")
@@ -430,7 +430,7 @@ def plot_diagnostics(path: Path, runs: list[Run], labels: Sequence[str]) -> None
 def plot_pmfs(path: Path, problem: Problem, pmfs: dict[str, np.ndarray], title: str) -> None:
     plt = _plt()
     fig, axes = plt.subplots(1, len(pmfs) + 1, figsize=(3.2 * (len(pmfs) + 1), 3.4), dpi=110)
-    img = problem.target.permute(1, 2, 0).numpy()
+    img = problem.target.permute(1, 2, 0).cpu().numpy()
     axes[0].imshow(np.clip(img, 0, 1) ** (1 / 2.2))
     axes[0].set_title("target", fontsize=9)
     for ax, (name, pmf) in zip(axes[1:], pmfs.items()):

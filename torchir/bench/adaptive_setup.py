@@ -319,11 +319,11 @@ def gradient_statistics(problem: Problem, method: str, budget: float | None, dra
 
 def bootstrap_traces(samples: torch.Tensor, reps: int = 1000, seed: int = 0) -> torch.Tensor:
     """Trace of the covariance of ``reps`` bootstrap resamples of the draws, ``(reps,)``."""
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator(device="cpu").manual_seed(seed)  # the same resamples on every device
     k = samples.shape[0]
     out = []
     for chunk in range(0, reps, 100):
-        idx = torch.randint(0, k, (min(100, reps - chunk), k), generator=g)
+        idx = torch.randint(0, k, (min(100, reps - chunk), k), generator=g, device="cpu").to(samples.device)
         out.append(samples[idx].var(1, unbiased=True).sum(-1))
     return torch.cat(out)
 

@@ -210,7 +210,7 @@ def _median_time(fn, reps: int) -> float:
 
 def timing(cfg: Config) -> list[dict[str, Any]]:
     rows = []
-    g = torch.Generator().manual_seed(0)
+    g = torch.Generator(device="cpu").manual_seed(0)
     for size in cfg.timing_sizes:
         scene = torchir.Scene.builtin("textured_wall", resolution=size)
         key = KEYS["albedo"]
@@ -220,8 +220,9 @@ def timing(cfg: Config) -> list[dict[str, Any]]:
             render(scene, {key: x}, spp=16, seed=1).abs().mean().backward()
 
         t_render = _median_time(render_step, cfg.timing_reps)
-        target = torch.rand(1, 3, size, size, generator=g)
-        noisy = (target + 0.3 * torch.randn(1, 3, size, size, generator=g)).requires_grad_()
+        device = torchir.backend.device()  # beside the renders it is timed against
+        target = torch.rand(1, 3, size, size, generator=g, device="cpu").to(device)
+        noisy = (target + 0.3 * torch.randn(1, 3, size, size, generator=g, device="cpu").to(device)).requires_grad_()
         guide = render_gbuffers(scene)[None]
         for r in cfg.timing_radii:
             row = dict(size=size, radius=r, render_step=t_render)

@@ -49,7 +49,7 @@ def write_photos(radiance: torch.Tensor, folder: Path, qualities: Sequence[int])
 
     write_image(folder / "photo.png", radiance)
     write_image(folder / "photo.exr", radiance)
-    codes = np.rint(255 * to_srgb(radiance.clamp(0, 1)).permute(1, 2, 0).double().numpy()).astype(np.uint8)
+    codes = np.rint(255 * to_srgb(radiance.clamp(0, 1)).permute(1, 2, 0).double().cpu().numpy()).astype(np.uint8)
     bitmap = mi.Bitmap(np.ascontiguousarray(codes), mi.Bitmap.PixelFormat.RGB)
     bitmap.set_srgb_gamma(True)
     out = {"png": folder / "photo.png", "exr": folder / "photo.exr"}

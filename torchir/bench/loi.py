@@ -157,7 +157,7 @@ def optimise_disks(loss: LossFn, init: torch.Tensor, target: torch.Tensor, color
 def bench_b2(args, methods: Sequence[str]) -> list[dict[str, Any]]:
     size, steps = 64, args.b2_steps
     losses = make_losses((0.5, 2.5, 7.5), (0.5, 2.5, 7.5, 22.5), None, reduction="sum")
-    gen = torch.Generator().manual_seed(0)
+    gen = torch.Generator(device=torch.get_default_device()).manual_seed(0)
     runs = []
     grey = torch.tensor([[0.8]])
     # single disk: target at (20, 32), starts 12..35 px to the right, alternately up/down a bit
@@ -210,7 +210,7 @@ def bench_b3(args, methods: Sequence[str]) -> list[dict[str, Any]]:
         truth = torch.stack(torch.meshgrid(grid, grid, indexing="xy"), -1).reshape(1, n, 2).expand(args.b3_seeds, n, 2)
         colors = PALETTE[torch.arange(n) % len(PALETTE)] * (1 - 0.5 * (torch.arange(n) // len(PALETTE) % 2)).view(-1, 1)
         target = disks(truth, colors, radius, size, "over")
-        gen = torch.Generator().manual_seed(n)
+        gen = torch.Generator(device=torch.get_default_device()).manual_seed(n)
         init = 4 + (size - 8) * torch.rand(args.b3_seeds, n, 2, generator=gen)
         for method in methods:
             t0 = time.perf_counter()

@@ -117,12 +117,12 @@ class Problem:
         weld = mesh_weld(user_mesh)
         self.repeats = weld.repeats
         self.keep = np.unique(weld.rep)
-        ramp = torch.linspace(-1.0, 1.0, resolution)
+        ramp = torch.linspace(-1.0, 1.0, resolution, device=torchir.backend.device())
         self.adjoint = (ramp[None, :, None] + 0.5).expand(3, resolution, resolution).contiguous()
         self._scenes: dict[str, torchir.Scene] = {}
         self.vertex = self._strongest_vertex()  # index into the welded mesh
         rep_of_welded = self.keep[self.vertex]
-        self.user_vertex_mask = torch.from_numpy(weld.rep == rep_of_welded)
+        self.user_vertex_mask = torch.from_numpy(weld.rep == rep_of_welded).to(torchir.backend.device())
 
     def scene(self, path: str) -> torchir.Scene:
         """The user's (unwelded) scene for ``path``: a Mitsuba integrator or a ReSTIR preset's."""
@@ -150,7 +150,7 @@ class Problem:
         return int(v0.grad.reshape(-1, 3)[:, 2].abs().argmax())
 
     def directions(self, vertex_mask: torch.Tensor, count: int) -> tuple[torch.Tensor, torch.Tensor]:
-        up = torch.tensor(UP, dtype=torch.float32)
+        up = torch.tensor(UP, dtype=torch.float32, device=vertex_mask.device)
         translation = up.repeat(count)
         vertex = (vertex_mask[:, None].float() * up).reshape(-1)
         return translation, vertex
@@ -166,7 +166,7 @@ class Problem:
         scene = self._scenes.setdefault("reference", torchir.Scene.from_dict(scene_dict(self.spec, {"type": "direct"}, self.resolution)))
         v0 = scene.get(KEY)
         if h is None:
-            p = v0.reshape(-1, 3).double().numpy()
+            p = v0.reshape(-1, 3).double().cpu().numpy()
             faces = mesh_weld(mi.load_dict(self.spec)).faces.astype(np.int64)
             h = 0.02 * float(np.median(np.linalg.norm(p[faces[:, 1]] - p[faces[:, 0]], axis=1)))
         out = {}
@@ -194,7 +194,7 @@ class Problem:
                 t = torch.zeros(2, requires_grad=True)
                 image = render(scene, {KEY: v0 + t[0] * d_t + t[1] * d_v}, spp=spp, seed=start + i, sampler=sampler)
                 (image * self.adjoint).sum().backward()
-                out[c, i] = t.grad.numpy()
+                out[c, i] = t.grad.cpu().numpy()
         return out
 
 

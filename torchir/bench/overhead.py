@@ -156,7 +156,7 @@ class TorchirLoop:
             self.param.clamp_(0.0, 1.0)
 
     def value(self) -> np.ndarray:
-        return self.param.detach().numpy().ravel().copy()
+        return self.param.detach().cpu().numpy().ravel().copy()
 
 
 @dataclass
@@ -177,7 +177,7 @@ def build(cfg: Config) -> Setup:
     info = scene_native.info(key)  # KeyError with suggestions for a wrong --param
     if not (info.bindable and info.differentiable):
         raise SystemExit(f"parameter {key!r} ({info.type_name}) is not a differentiable float parameter")
-    true_value = scene_torchir.get(key).numpy().ravel().copy()
+    true_value = scene_torchir.get(key).cpu().numpy().ravel().copy()
 
     t0 = time.perf_counter()
     target = mi.render(scene_native.mi_scene, spp=cfg.target_spp, seed=2**31 - 1)  # (H, W, C)

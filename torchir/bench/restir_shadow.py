@@ -186,7 +186,7 @@ def momentum_variance(grads: Sequence[float], beta: float = ADAM_BETA1, shuffles
     its ratio to the same for the steps in random orders (``shuffles`` fixed-seed permutations:
     the same gradients, independent steps, and the same small-N bias): above 1 where steps share
     samples. (nan, nan) with too few steps."""
-    g = torch.as_tensor(grads, dtype=torch.float64)
+    g = torch.as_tensor(grads, dtype=torch.float64, device="cpu")
     warm_up = int(round(1.0 / (1.0 - beta)))
     if len(g) < warm_up + 2:
         return float("nan"), float("nan")
@@ -198,8 +198,8 @@ def momentum_variance(grads: Sequence[float], beta: float = ADAM_BETA1, shuffles
             averages.append(average)
         return float(torch.stack(averages).var())
 
-    generator = torch.Generator().manual_seed(0)
-    independent = sum(window(g[torch.randperm(len(g), generator=generator)]) for _ in range(shuffles)) / shuffles
+    generator = torch.Generator(device="cpu").manual_seed(0)
+    independent = sum(window(g[torch.randperm(len(g), generator=generator, device="cpu")]) for _ in range(shuffles)) / shuffles
     ordered = window(g)
     return ordered, ordered / independent if independent > 0 else float("nan")
 

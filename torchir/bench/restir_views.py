@@ -77,9 +77,9 @@ def methods(a: argparse.Namespace) -> dict[str, dict[str, Any] | None]:
 
 
 def _loss_weights(scene: torchir.Scene, views: int) -> list[torch.Tensor]:
-    g = torch.Generator().manual_seed(0)
+    g = torch.Generator(device="cpu").manual_seed(0)
     h, w = scene.resolution
-    return [torch.rand(3, h, w, generator=g) for _ in range(views)]
+    return [torch.rand(3, h, w, generator=g, device="cpu").to(torchir.backend.device()) for _ in range(views)]
 
 
 def _gradient(scene, texture, weights, view, spp, seed, sampler=None) -> torch.Tensor:

@@ -11,7 +11,46 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["EmitterWatch", "GeometryWatch", "as_tuples"]
+__all__ = ["EmitterWatch", "GeometryWatch", "ValueReader", "as_tuples"]
+
+
+class ValueReader:
+    """:func:`_fingerprint` of scene values, read from the device only when their Dr.Jit
+    variables changed since the last read under the same key.
+
+    A Dr.Jit variable never changes its value (a write makes a new one), so the same variable
+    indices mean the same values. The reader keeps the last value it read per key alive, so its
+    indices cannot be given to new variables meanwhile. On a GPU every read is a copy and a sync:
+    a light or shape that stays put is now read once, not at every step (``device_audit``).
+    """
+
+    def __init__(self) -> None:
+        self._last: dict[str, tuple[object, tuple, tuple]] = {}  # key: (value kept alive, indices, fingerprint)
+
+    def __call__(self, key: str, value) -> tuple:
+        indices = _variable_indices(value)
+        last = self._last.get(key)
+        if indices and last is not None and last[1] == indices:
+            return last[2]
+        fingerprint = _fingerprint(value)
+        if indices:
+            self._last[key] = (value, indices, fingerprint)
+        return fingerprint
+
+
+def _variable_indices(value) -> tuple:
+    """The Dr.Jit variable indices behind ``value`` (a transform, array or tensor); ``()`` when
+    there are none to go by (Python numbers, a variable not yet created)."""
+    if "Transform" in type(value).__name__:
+        value = value.matrix
+    if dr.is_tensor_v(value):
+        value = value.array
+    if not dr.is_jit_v(value):
+        return ()
+    if dr.depth_v(value) == 1:
+        return (value.index,) if value.index else ()
+    parts = [_variable_indices(entry) for entry in value]
+    return () if any(not p for p in parts) else tuple(i for p in parts for i in p)
 
 
 class EmitterWatch:
@@ -34,6 +73,7 @@ class EmitterWatch:
         self._scene_ref: int | None = None
         self._keys: list[tuple[list[str], list[str]]] = []  # (emission, placement) keys per light
         self._params = None
+        self._read = ValueReader()
 
     def _bind(self, scene: mi.Scene) -> None:
         self._scene_ref, self._params = id(scene), mi.traverse(scene)
@@ -55,8 +95,8 @@ class EmitterWatch:
             self._bind(scene)
         on, where = [], []
         for emission, place in self._keys:
-            on.append(all(_any_nonzero(self._params[k]) for k in emission))
-            where.append(tuple(_fingerprint(self._params[k]) for k in place))
+            on.append(all(_has_nonzero(self._read(k, self._params[k])) for k in emission))
+            where.append(tuple(self._read(k, self._params[k]) for k in place))
         return tuple(on), tuple(where)
 
     @staticmethod
@@ -78,6 +118,7 @@ class GeometryWatch:
         self._scene_ref: int | None = None
         self._params = None
         self._keys: list[str] = []
+        self._read = ValueReader()
 
     def __call__(self, scene: mi.Scene) -> tuple:
         if self._scene_ref != id(scene):
@@ -89,7 +130,7 @@ class GeometryWatch:
         for key in self._keys:
             v = self._params[key]
             index = getattr(v, "index", 0)
-            out.append(index if index else _fingerprint(v))
+            out.append(index if index else self._read(key, v))
         return tuple(out)
 
 
@@ -103,8 +144,8 @@ def as_tuples(value):
 def _fingerprint(v) -> tuple:
     """The value of a scene parameter as a tuple of floats (large arrays: size, sum and sum of
     squares). Width-1 literals (a light's colour, a point light's position) are read without
-    numpy or a host sync: this runs for every light at every step, so it must stay cheap
-    (measurements: docs/restir-measurements.md, "Scene watches")."""
+    numpy or a host sync: this runs for every light whose variables changed (:class:`ValueReader`),
+    so it must stay cheap (measurements: docs/restir-measurements.md, "Scene watches")."""
     if isinstance(v, (int, float)):
         return (float(v),)
     if "Transform" in type(v).__name__:  # (points have a .matrix too)
@@ -120,7 +161,11 @@ def _fingerprint(v) -> tuple:
 
 
 def _any_nonzero(v) -> bool:
-    values = _fingerprint(v)
+    return _has_nonzero(_fingerprint(v))
+
+
+def _has_nonzero(values: tuple) -> bool:
+    """Whether a :func:`_fingerprint` says some value is nonzero."""
     if len(values) == 3 and isinstance(values[0], int):  # a large array: (size, sum, sum of squares)
         return values[2] != 0
     return any(x != 0 for x in values)

@@ -46,7 +46,7 @@ from ._restir_boundary import BoundaryTerms
 from ._restir_pass import PassSettings, ResamplingPass, footprints, tic
 from ._restir_state import (LOADED, STORE, PassStats, SensorState, StepCache, carry_over, chain, chain_from_dict,
                             chain_to_dict, project, reservoir_stats)
-from ._scene_watch import EmitterWatch, GeometryWatch
+from ._scene_watch import EmitterWatch, GeometryWatch, ValueReader
 from .restir_options import ReSTIROptions
 
 __all__ = ["ReSTIRDirectIntegrator", "ReSTIROptions", "check_scene", "StepCache"]
@@ -107,6 +107,7 @@ class ReSTIRDirectIntegrator(BoundaryTerms):
         self._frozen_pass = None
         self._init_boundary_terms()
         self._geometry_watch = GeometryWatch()
+        self._camera_read = ValueReader()  # the camera's transform, read from the device only when it changes
         self._geometry_seen: tuple | None = None  # geometry at the last step
         self._geometry_frozen: tuple | None = None  # geometry the frozen pass was recorded with
         self.last_pass_frozen = False
@@ -255,7 +256,7 @@ class ReSTIRDirectIntegrator(BoundaryTerms):
     def _sample_paths(self, scene, sensor, seed, spp, prev, st, prev_camera, zero_remainder, candidates):
         sensor_obj = scene.sensors()[sensor]
         w, h = (int(v) for v in sensor_obj.film().crop_size())
-        camera = (tuple(np.array(sensor_obj.world_transform().matrix).ravel().tolist()), w, h, spp)
+        camera = (self._camera_read(f"sensor{sensor}", sensor_obj.world_transform()), w, h, spp)
         if st.radius <= 0:
             auto_radius, small_footprint = footprints(scene, sensor_obj, seed, spp, w, h)
             st.radius = self.radius if self.radius > 0 else auto_radius

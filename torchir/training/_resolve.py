@@ -76,7 +76,7 @@ def _to_checkpoint(state: Any) -> Any:
 def _from_checkpoint(state: Any) -> Any:
     if isinstance(state, dict):
         if set(state) == {"__ndarray__"}:
-            return state["__ndarray__"].numpy()
+            return state["__ndarray__"].cpu().numpy()
         return {k: _from_checkpoint(v) for k, v in state.items()}
     if isinstance(state, (list, tuple)):
         return type(state)(_from_checkpoint(v) for v in state)

@@ -26,7 +26,7 @@ INLINE_MAX = 16  # values up to this many entries go into result.yaml itself
 
 def _rounded(x: torch.Tensor) -> Any:
     """Nested lists of floats with 6 significant digits (a scalar for one entry)."""
-    values = np.vectorize(lambda v: float(f"{v:.6g}"))(x.double().numpy()) if x.numel() else x.numpy()
+    values = np.vectorize(lambda v: float(f"{v:.6g}"))(x.double().cpu().numpy()) if x.numel() else x.cpu().numpy()
     return values.item() if x.numel() == 1 else values.tolist()
 
 
@@ -41,7 +41,7 @@ def parameter_entry(key: str, value: torch.Tensor, folder: Path) -> Any:
         path = write_image(files / f"{key}.exr", value.permute(2, 0, 1))
     else:
         path = files / f"{key}.npy"
-        np.save(path, value.numpy())
+        np.save(path, value.cpu().numpy())
     return {"file": str(path.relative_to(folder)), "shape": list(value.shape), "mean": _rounded(_summary_mean(value))}
 
 
