@@ -11,7 +11,8 @@ kinds of code break that, and both run silently on a CPU, where every tensor is 
   ``np.array(x)`` and ``bool(x)``, each a copy (and a wait) on a GPU.
 
 Host bookkeeping by intent is told apart on any machine by how it was made: a tensor from a
-factory given ``device="cpu"``, and whatever is computed from such tensors alone, is read freely.
+factory given ``device="cpu"`` (the string; ``x.device`` is the render device's stand-in) or moved
+with ``.to("cpu")``, and whatever is computed from such tensors alone, is read freely.
 
 Inside ``with device_audit() as audit:`` every such call is recorded with the line of the audited
 package that made it (``site``) and the line that ran it (``origin``: a library's, when torchir
@@ -187,16 +188,42 @@ class _TorchCalls(TorchFunctionMode):
             if device is None:
                 self.audit.record("factory", f"torch.{name}", 0)
             result = func(*args, **kwargs)
-            if device is not None and torch.device(device).type == "cpu":
+            if _says_host(device):
                 self._mark_host(result)
             return result
         if not from_host and (name in TRANSFERS or (name == "to" and _to_host(args, kwargs, self.render_device))):
             source = args[0] if args and isinstance(args[0], torch.Tensor) else None
             self.audit.record("transfer", f"Tensor.{name}", source.numel() if source is not None else 1)
         result = func(*args, **kwargs)
-        if from_host:
+        moved = _moved_to(name, args, kwargs)
+        if _says_host(moved) or (from_host and moved is None):
             self._mark_host(result)
+        elif moved is not None and args and result is args[0] and self._is_host(result):
+            # on the CPU, .to(x.device) of a host tensor returns the tensor itself: hand back an
+            # alias, so that the moved tensor is read as a device tensor and the original stays host
+            # (inside the handler the mode is off: this call is not recorded)
+            result = result.view_as(result)
         return result
+
+
+def _says_host(device: object) -> bool:
+    """A device written as the string "cpu": host by intent. A ``torch.device`` (``x.device``)
+    is not: on a CPU machine it cannot tell the host from the render device."""
+    return isinstance(device, str) and device == "cpu"
+
+
+def _moved_to(name: str, args: tuple, kwargs: dict) -> object:
+    """The device a ``.to(...)``/``.cuda()`` call moves to (None: no move, e.g. a dtype change)."""
+    if name == "cuda":
+        return "cuda"
+    if name != "to":
+        return None
+    for candidate in (*args[1:], kwargs.get("device")):
+        if isinstance(candidate, (str, torch.device)):
+            return candidate
+        if isinstance(candidate, torch.Tensor):  # .to(other): other's device
+            return candidate.device
+    return None
 
 
 @contextmanager

@@ -38,7 +38,11 @@ def make(x):
     scalar = float(x.sum())
     host = mi.Float(1.0, 2.0, 3.0, 4.0).numpy()  # host: a Dr.Jit array
     blurred = kornia.filters.gaussian_blur2d(x.reshape(1, 1, 1, -1).expand(1, 1, 5, 5), (3, 3), (1.0, 1.0))
-    return a, b, c, moved, scalar, host, blurred
+    indices = torch.arange(4, device="cpu") * 2
+    listed = indices.tolist()
+    on_device = indices.to(x.device)
+    back = on_device.tolist()
+    return a, b, c, moved, scalar, host, blurred, listed, back
 """
 
 
@@ -62,8 +66,9 @@ def test_audit_finds_factories_without_device_and_host_transfers(audited):
     with device_audit(roots=[folder]) as audit:
         module.make(torch.ones(5))
     assert _lines(audit.factories()) == [("torch.zeros", 7)]  # not line 8 (a device), nor ones_like
-    assert sorted(_lines(audit.transfers(min_elements=2))) == [("Tensor.cpu", 10), ("drjit.numpy", 12)]
-    assert {(f.call, f.elements) for f in audit.transfers(min_elements=2)} == {("drjit.numpy", 4), ("Tensor.cpu", 5)}
+    # not line 15: host bookkeeping by intent (device="cpu"); line 17: the same values moved to x's device
+    assert sorted(_lines(audit.transfers(min_elements=2))) == [("Tensor.cpu", 10), ("Tensor.tolist", 17), ("drjit.numpy", 12)]
+    assert {(f.call, f.elements) for f in audit.transfers(min_elements=2)} == {("drjit.numpy", 4), ("Tensor.cpu", 5), ("Tensor.tolist", 4)}
     assert ("Tensor.__float__", 11) in _lines(audit.transfers())  # a scalar read: a sync on a GPU
     library = [f for f in audit.findings("factory") if f.origin != f.site]  # kornia's own sigma tensor
     assert library and all(f.origin.startswith("kornia") and f.site.endswith("make") for f in library)

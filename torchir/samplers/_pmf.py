@@ -145,7 +145,7 @@ def draw(
     (unlike ``torch.multinomial``, no 2^24 category limit), and their realised probabilities
     ``cdf[j] - cdf[j-1]`` (the pmf the draws really follow). ``pdf``: those differences
     precomputed (``torch.diff(cdf, prepend=0)``, the same numbers), read with one gather."""
-    u = torch.rand(count, generator=generator, dtype=torch.float64, device=generator.device)
+    u = torch.rand(count, generator=generator, dtype=torch.float64, device="cpu")  # the pmf and its generator live on the host
     index = torch.searchsorted(cdf, u, right=True).clamp_(max=cdf.numel() - 1)
     if pdf is not None:
         return index, pdf[index]

@@ -160,7 +160,7 @@ def _stage1_grids(size: tuple[int, int], scale: int, min_side: int, levels: int)
 
 
 def _rademacher(value: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    bits = torch.randint(0, 2, value.shape, generator=generator, device=generator.device)  # drawn on the host
+    bits = torch.randint(0, 2, value.shape, generator=generator, device="cpu")  # drawn on the host
     return (2 * bits - 1).to(device=value.device, dtype=torch.float32)
 
 
@@ -427,7 +427,7 @@ class PixelSampler:
         for i, v in enumerate(views):
             # every process draws every view's tangents and seed: the shared generator stays in step
             tangents = {k: _rademacher(val, self.generator) for k, val in probed.items()} if p2 is not None and probed else None
-            seed = int(torch.randint(0, 2**32 - 1, (1,), generator=self.generator, device=self.generator.device))
+            seed = int(torch.randint(0, 2**32 - 1, (1,), generator=self.generator, device="cpu"))
             if i % self.world != self.rank:  # another process probes this view
                 continue
             radiance, derivative = probe_pixels(
