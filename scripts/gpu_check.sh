@@ -19,9 +19,22 @@ export PYTHONUNBUFFERED=1 TORCHIR_VARIANT=$VARIANT
 started=$(date +%s)
 elapsed() { echo $(( $(date +%s) - started )); }
 
+extras_used=""
 if [ -f .gpu/site.tar.xz ] && [ "$SITE" != none ]; then
     mkdir -p "$SITE" && tar -xJf .gpu/site.tar.xz -C "$SITE" || { echo "unpacking .gpu/site.tar.xz failed" | tee "$REPORT"; exit 1; }
     export PYTHONPATH=$SITE:$PWD${PYTHONPATH:+:$PYTHONPATH}
+    # extras: each only where the machine lacks it (a module, then the archive's folders and files)
+    if [ -f .gpu/extras.tar.xz ]; then
+        for group in "PIL ./PIL ./pillow.libs ./pillow-*" \
+                     "matplotlib ./matplotlib ./matplotlib-* ./mpl_toolkits ./contourpy* ./cycler* ./fontTools ./fonttools-* ./kiwisolver* ./pyparsing* ./dateutil ./python_dateutil-* ./six.py ./six-*" \
+                     "xdist ./xdist ./pytest_xdist-* ./execnet ./execnet-*"; do
+            set -- $group
+            module=$1; shift
+            if ! python3 -c "import $module" 2>/dev/null; then
+                tar -xJf .gpu/extras.tar.xz -C "$SITE" --wildcards "$@" && extras_used="$extras_used $module"
+            fi
+        done
+    fi
 else
     export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
 fi
@@ -31,7 +44,7 @@ fi
     echo
     echo '```'
     nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>&1 | head -2 || true
-    python3 - <<'PY'
+    EXTRAS_USED="$extras_used" python3 - <<'PY'
 import os, platform, time
 import numpy, torch
 import drjit as dr
@@ -50,6 +63,7 @@ try:
         print(f"{variant} {label}: {time.perf_counter() - start:.2f} s, mean {float(dr.mean(image.array)[0]):.4f}")
 except Exception as error:  # OptiX missing from the driver shows here
     print(f"{variant} render FAILED: {error!r}")
+print("extras unpacked (missing here):", os.environ.get("EXTRAS_USED") or "none")
 import torchir
 print("torchir", torchir.__version__, torchir.backend.describe() if hasattr(torchir.backend, "describe") else "",
       "torch device", torchir.backend.device())
@@ -59,8 +73,9 @@ PY
 
 echo -e "\n## Tests ($VARIANT)\n" >> "$REPORT"
 workers=${TEST_WORKERS:-4}
+parallel=$(python3 -c "import xdist" 2>/dev/null && echo "-n $workers --dist loadfile" || echo "-p no:xdist")
 per_test=$(python3 -c "import pytest_timeout" 2>/dev/null && echo "--timeout 150")
-timeout "${TEST_SECONDS:-240}" python3 -m pytest -q -p no:randomly -p no:cacheprovider -n "$workers" --dist loadfile \
+timeout "${TEST_SECONDS:-240}" python3 -m pytest -q -p no:randomly -p no:cacheprovider $parallel \
     $per_test -o addopts="-ra --strict-markers -m 'not slow'" ${TESTS:-tests} > "$OUTDIR/tests.log" 2>&1
 rc=$?
 { echo '```'; grep -E "^(FAILED|ERROR)" "$OUTDIR/tests.log" | head -40; tail -3 "$OUTDIR/tests.log"; echo '```'
