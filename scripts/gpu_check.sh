@@ -75,6 +75,8 @@ echo -e "\n## Tests ($VARIANT)\n" >> "$REPORT"
 workers=${TEST_WORKERS:-4}
 parallel=$(python3 -c "import xdist" 2>/dev/null && echo "-n $workers --dist loadfile" || echo "-p no:xdist")
 per_test=$(python3 -c "import pytest_timeout" 2>/dev/null && echo "--timeout 150")
+# the files that say most about the GPU first, in case TEST_SECONDS stops the run
+export TORCHIR_TESTS_FIRST=${TORCHIR_TESTS_FIRST:-test_device_audit.py,test_render.py,test_render_pixels.py,test_functions_core.py,test_backward_twice.py,test_restir_sampler.py,test_loi.py,test_denoisers.py,test_pixel_sampling.py,test_training_module.py,test_backend.py}
 timeout "${TEST_SECONDS:-240}" python3 -m pytest -q -p no:randomly -p no:cacheprovider $parallel \
     $per_test -o addopts="-ra --strict-markers -m 'not slow'" ${TESTS:-tests} > "$OUTDIR/tests.log" 2>&1
 rc=$?

@@ -59,7 +59,10 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    rank = {name: i for i, name in enumerate(LONGEST_FILES_FIRST)}
+    # TORCHIR_TESTS_FIRST=a.py,b.py: these files first, in that order (scripts/gpu_check.sh: what a
+    # time-limited run on a GPU must not miss), then the longest files
+    first = [name.strip() for name in os.environ.get("TORCHIR_TESTS_FIRST", "").split(",") if name.strip()]
+    rank = {name: i for i, name in enumerate([*first, *(n for n in LONGEST_FILES_FIRST if n not in first)])}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the tests in a file keep their (shuffled) order
     if not torchir.backend.frozen_renders():  # TORCHIR_FREEZE=0 (docs/troubleshooting.md): nothing is frozen to check
         skip = pytest.mark.skip(reason="checks frozen render passes, which TORCHIR_FREEZE=0 turns off")

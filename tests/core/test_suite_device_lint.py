@@ -76,3 +76,20 @@ def test_no_cpu_generator_or_device_numpy_in_torchir():
         for number, what in device_findings(path.read_text(encoding="utf-8")):
             found.append(f"{path.relative_to(package.parent)}:{number}: {what}")
     assert not found, "torchir code that fails on a GPU:\n" + "\n".join(found)
+
+
+def test_files_named_in_torchir_tests_first_run_first():
+    # scripts/gpu_check.sh names the files a time-limited GPU run must not miss
+    import os
+    import subprocess
+    import sys
+
+    files = ["tests/modules/test_losses.py", "tests/core/test_jpeg.py", "tests/core/test_extremes.py"]
+    env = {**os.environ, "TORCHIR_TESTS_FIRST": "test_jpeg.py,test_losses.py"}
+    out = subprocess.run([sys.executable, "-m", "pytest", "--co", "-q", "-p", "no:randomly", "-p", "no:cacheprovider", *files],
+                         cwd=TESTS.parent, env=env, capture_output=True, text=True, timeout=300)
+    order = [line.split("::")[0] for line in out.stdout.splitlines() if "::" in line]
+    assert out.returncode == 0, out.stderr[-2000:]
+    seen = list(dict.fromkeys(order))
+    # named files first, in the order named, then the longest files (test_extremes.py is one)
+    assert seen == ["tests/core/test_jpeg.py", "tests/modules/test_losses.py", "tests/core/test_extremes.py"], seen
