@@ -294,15 +294,10 @@ class Bench:
             raise RuntimeError("make_reference first")
         GradientRecorder, _ = _callbacks()
         row: dict[str, Any] = {"kind": "gradient", "setting": setting.label(), "key": setting.key, "steps": steps}
-        module = self._build(setting, row)
-        if module is None:
-            return row
         recorder = GradientRecorder(warmup, deadline)
-        started = time.perf_counter()
-        failure = self._run(module, self.datamodule(all_views=True), recorder, warmup + steps, row)
-        del module
-        if failure is not None:
-            return {**row, "status": "failed", "error": failure, "seconds": time.perf_counter() - started}
+        ended, started = self._attempt(setting, row, recorder, True, warmup + steps)
+        if ended is not None:
+            return ended
         if not recorder.grads:
             return {**row, "status": "failed", "error": "no step was measured", "seconds": time.perf_counter() - started}
         errors = relative_errors(recorder.grads, self.reference.grad)
@@ -312,6 +307,21 @@ class Bench:
         return {**row, "status": "ran", "steps": len(errors), "relative_errors": errors, "gradient_error": error,
                 "gradient_error_sq_se": error_se, "step_seconds": recorder.seconds, "seconds_per_step": charged,
                 "median_step_seconds": step, "seconds": time.perf_counter() - started}
+
+    def _attempt(self, setting: Setting, row: dict[str, Any], recorder: Any, all_views: bool,
+                 max_steps: int) -> tuple[Optional[dict[str, Any]], float]:
+        """Build ``setting``'s module and fit it with ``recorder``: ``(ended, started)``, where
+        ``ended`` is the finished row when the module refused the setting or the run failed
+        (``None`` when it ran) and ``started`` the clock after the build."""
+        module = self._build(setting, row)
+        if module is None:
+            return row, time.perf_counter()
+        started = time.perf_counter()
+        failure = self._run(module, self.datamodule(all_views=all_views), recorder, max_steps, row)
+        del module
+        if failure is not None:
+            return {**row, "status": "failed", "error": failure, "seconds": time.perf_counter() - started}, started
+        return None, started
 
     def _run(self, module: Any, data: Any, recorder: Any, max_steps: int, row: dict[str, Any]) -> Optional[str]:
         """Fit ``module``; the error's text when it fails (reported in the table: the search goes
@@ -356,15 +366,10 @@ class Bench:
         (:func:`decrease_per_second`)."""
         _, WindowRecorder = _callbacks()
         row: dict[str, Any] = {"kind": "training", "setting": setting.label(), "key": setting.key, "window_seconds": seconds}
-        module = self._build(setting, row)
-        if module is None:
-            return row
         recorder = WindowRecorder(seconds, deadline)
-        started = time.perf_counter()
-        failure = self._run(module, self.datamodule(all_views=False), recorder, max_steps, row)
-        del module
-        if failure is not None:
-            return {**row, "status": "failed", "error": failure, "seconds": time.perf_counter() - started}
+        ended, started = self._attempt(setting, row, recorder, False, max_steps)
+        if ended is not None:
+            return ended
         return {**row, "status": "ran", "metric": recorder.metric, "steps": recorder.count, "times": recorder.times,
                 "errors": recorder.errors, "losses": recorder.losses,
                 "decrease_per_second": decrease_per_second(recorder.times, recorder.errors),
