@@ -31,6 +31,7 @@ Example:
 """
 from __future__ import annotations
 
+import math
 import os
 import sys
 import weakref
@@ -129,12 +130,9 @@ def _short(path: str) -> str:
 
 
 def _elements(value: object) -> int:
-    if isinstance(value, torch.Tensor):
-        return value.numel()
-    try:
-        return len(value)  # type: ignore[arg-type]
-    except TypeError:
-        return 1
+    """Entries of a Dr.Jit array or tensor (its ``len`` would count a matrix's rows, a tensor's first axis)."""
+    shape = getattr(value, "shape", None)
+    return math.prod(shape) if shape is not None else 1
 
 
 def _to_host(args: tuple, kwargs: dict, render_device: str) -> bool:
