@@ -160,10 +160,6 @@ def _fingerprint(v) -> tuple:
     return tuple(vals.tolist()) if vals.size <= 16 else (vals.size, float(vals.sum()), float((vals * vals).sum()))
 
 
-def _any_nonzero(v) -> bool:
-    return _has_nonzero(_fingerprint(v))
-
-
 def _has_nonzero(values: tuple) -> bool:
     """Whether a :func:`_fingerprint` says some value is nonzero."""
     if len(values) == 3 and isinstance(values[0], int):  # a large array: (size, sum, sum of squares)
