@@ -42,7 +42,7 @@ PERSISTENT_STEP = 2.0  # a persistent step with light guides / a B.2 step (1.5-1
 # area lights, light/camera variance 10, persistent chains fitted 2.6x worse than B.2: texture RMSE 0.0057 against 0.0040)
 PERSISTENCE_WINDOW = 10.0
 PERSISTENT_CANDIDATES = 4
-BURN_IN_SHARE = 1.0  # the lane chains' burn-in may take at most this share of the planned steps' time
+BURN_IN_SHARE = 1.0  # the lane chains' burn-in may take at most this share of the planned steps' time (but always 64 x PERSISTENT_CANDIDATES candidates)
 CHAINS_BURNED_IN = 2  # the image's chains and, with decorrelated gradient paths, the gradient's own
 SPATIOTEMPORAL_CANDIDATES = 16
 SPATIOTEMPORAL_STEP = 2.3  # a spatiotemporal step / a B.2 step (1.6-2.3 measured)
@@ -213,7 +213,8 @@ def choose(probe: SceneProbe, planned_steps: int = DEFAULT_PLANNED_STEPS, pinned
         most = max(BURN_IN_SHARE * n * step / (chains * t_c), 64.0 * c)
         x = min(max(math.sqrt(v_l * n * step / (chains * PERSISTENCE_WINDOW * v_c * t_c)), 64.0 * c), most)
         burn_in = max(1, math.ceil(x / c))
-        costs["persistent"] = (PERSISTENCE_WINDOW * v_c + v_l / x) * step * (1 + chains * burn_in * c * t_c / (n * step)) / base
+        ran = burn_in * c  # the burn-in's candidates per lane as run (x rounded up to whole passes)
+        costs["persistent"] = (PERSISTENCE_WINDOW * v_c + v_l / ran) * step * (1 + chains * burn_in * c * t_c / (n * step)) / base
         options["persistent"] = ReSTIROptions.persistent(candidates=c, burn_in=burn_in, m_cap=4 * burn_in * c, light_guide=0.5)
 
     reuse = min((k for k in costs if k != "plain"), key=costs.get)

@@ -50,9 +50,10 @@ def relative_errors(grads: list[torch.Tensor], reference: torch.Tensor) -> list[
 
 def _relative_se(grads: torch.Tensor) -> float:
     """Relative standard error of the mean of ``grads`` ``(n, P)``: ``||sd|| / sqrt(n) / ||mean||``."""
-    if len(grads) < 2:
+    norm = float(grads.mean(0).norm()) if len(grads) else 0.0
+    if len(grads) < 2 or not norm > 0:  # a zero mean has no relative error: never "enough" (the caller says why)
         return math.inf
-    return float(grads.std(0).norm()) / math.sqrt(len(grads)) / float(grads.mean(0).norm())
+    return float(grads.std(0).norm()) / math.sqrt(len(grads)) / norm
 
 
 @contextlib.contextmanager
