@@ -93,8 +93,10 @@ def rigid_transform(
         name: prefix of the new parameters (default: ``shape``).
         rotation_axis: optimise one angle about this axis ((1,) ``<name>.rotation``), instead
             of three Euler angles.
-        pivot: ``"center"`` (the centre of the loaded shape's bounding box) or a point: what
-            rotation and scale keep fixed.
+        pivot: ``"center"`` or a point: what rotation and scale keep fixed. ``"center"`` is the
+            centre of a mesh's bounding box as loaded, and for an analytic shape the point its
+            ``to_world`` puts the shape's local origin at (the centre of a sphere, rectangle or
+            disk; the base of Mitsuba's cylinder, which runs from z = 0 to 1).
         translation, rotation, scale: the load-time values (rotation in degrees).
 
     Returns:
