@@ -9,7 +9,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 PACKAGES=(mitsuba==3.9.1 drjit==1.5.0 kornia==0.9.0 kornia_rs==0.2.0 jsonargparse==4.53.0 docstring_parser==0.18.0
-          typeshed_client==2.15.0)
+          typeshed_client==2.15.0 cholespy==2.2.0 gpytoolbox==0.3.8)
 # Not listed as installed there, needed by the tests and the benchmarks' plots: packed apart
 # (.gpu/extras.tar.xz); gpu_check.sh unpacks each only where the machine lacks it.
 EXTRAS=(pillow==11.3.0 matplotlib==3.10.3 contourpy==1.3.2 cycler==0.12.1 fonttools==4.58.5 kiwisolver==1.4.8

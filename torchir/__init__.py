@@ -22,7 +22,7 @@ __all__ = ["backend", "scenes", "Scene", "ParameterInfo", "functions", "testing"
 
 
 _LAZY = ("functions", "testing", "derived", "modules", "samplers", "imageio", "training", "welding", "extremes",
-         "integrators", "bench")
+         "integrators", "bench", "geometry")
 
 
 def __getattr__(name: str):

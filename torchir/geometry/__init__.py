@@ -1,0 +1,13 @@
+"""Mesh reconstruction on the torch side: the Large Steps parameterisation, uniform Adam,
+Botsch-Kobbelt remeshing, surface distances and mesh files.
+
+See ``docs/geometry.md`` for a reconstruction loop.
+"""
+from .largesteps import LargeSteps
+from .meshio import read_mesh, write_mesh
+from .metrics import chamfer_distance, hausdorff_distance, sample_surface
+from .optim import AdamUniform
+from .remesh import remesh, remesh_scene
+
+__all__ = ["LargeSteps", "AdamUniform", "remesh", "remesh_scene", "chamfer_distance", "hausdorff_distance", "sample_surface",
+           "read_mesh", "write_mesh"]
