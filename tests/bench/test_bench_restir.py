@@ -7,6 +7,7 @@ import math
 import statistics
 
 import pytest
+import torch
 
 from torchir.bench import SUITES
 from torchir.bench.restir_report import error_at_spp
@@ -190,6 +191,129 @@ def test_summary_splits_floor_and_light_and_reads_gain_of_possible():
     assert below["rows"]["ReSTIR (shadowed)"]["light"] == 0.0  # an error under the floor: no light part, not NaN
 
 
+def test_two_oracles_extrapolate_the_floor_at_each_spp_and_bound_each_variant_by_its_own():
+    """The floor and bound columns of the slow quick run, from known errors: with RIS oracles over
+    64 and 256 candidates, ``e(M)² = floor² + L / M`` gives the floor exactly, at 1 spp (the
+    floor column, the oracle row's errors) and at 2 spp (a ReSTIR variant's equal-time spp,
+    whose bound is the best baseline's equal-time error over that floor)."""
+    def oracle(floor: float, light: float, m: int) -> float:
+        return math.sqrt(floor**2 + light / m)
+
+    floors, light = {1: 0.02, 2: 0.01}, {1: 0.0256, 2: 0.0064}
+    spp_eq = {"direct": 2, "B.1": 2, "B.2": 2, "ReSTIR (persistent)": 2}
+    runs = [_run(m, s, [e / math.sqrt(s)] * 2) for m, e in (("direct", 0.5), ("B.1", 0.6), ("B.2", 0.3)) for s in (1, 2)]
+    runs += [_run("ReSTIR (persistent)", s, [0.05 / s] * 2) for s in (1, 2)]
+    runs += [_run(name, s, [oracle(floors[s], light[s], m)] * 2) for name, m in ((ORACLE_LOW, 64), (ORACLE, 256)) for s in (1, 2)]
+    summary = summarize_scene(runs, 1, spp_eq, oracle_candidates=(64, 256))
+    rows = summary["rows"]
+    assert summary["floors"] == {"1": pytest.approx(0.02), "2": pytest.approx(0.01)}
+    assert rows["B.2"]["floor"] == pytest.approx(0.02) and rows[ORACLE]["relerr_equal_samples"] == pytest.approx(0.02)
+    assert rows[ORACLE]["oracle_errors"] == {"256": pytest.approx(oracle(0.02, 0.0256, 256)), "64": pytest.approx(oracle(0.02, 0.0256, 64))}
+    restir = rows["ReSTIR (persistent)"]
+    assert restir["floor_equal_time"] == pytest.approx(0.01) and rows["B.2"]["floor_equal_time"] is None
+    e_best = 0.3 / math.sqrt(2)  # B.2 at its equal-time 2 spp
+    assert summary["best_baseline"] == "B.2" and restir["gain"] == pytest.approx(e_best / 0.025)
+    assert restir["bound"] == pytest.approx(e_best / 0.01)  # >= gain: the variant's error is above its floor
+    assert restir["light"] == pytest.approx(math.sqrt(0.05**2 - 0.02**2))  # at 1 spp, against the 1-spp floor
+
+
+def test_gradient_runs_take_every_step_s_error_less_the_reference_s_and_charge_the_burn_in():
+    """``gradient_runs`` on a stand-in problem with known per-step errors and times: the
+    relative error of a run is the RMS of its steps' errors with the reference's own relative
+    s.e. removed in quadrature (every step, the first included), its step time the median of
+    the steps after the first (compilation, burn-in), its charged time that plus the burn-in
+    spread over the steps, and step ``i`` of every run has seed ``1000 + i`` (shared camera rays)."""
+    from types import SimpleNamespace
+
+    from torchir.bench.restir import gradient_runs
+
+    errors = {("B.2", 1): [0.30, 0.40, 0.20, 0.50], (ORACLE, 1): [0.10, 0.12, 0.08, 0.11]}
+    times = [9.0, 0.2, 0.4, 0.3]
+    seeds = []
+
+    def step(sampler, spp, seed):
+        seeds.append((sampler, seed))
+        i = seed - 1000
+        diag = {"time_burn_in": 0.8 if i == 0 else 0.0, "time_ris": 0.1}
+        return times[i], errors[sampler, spp][i], diag
+
+    problem = SimpleNamespace(name="stand-in", ref_relative_se=0.05, sampler=lambda method, a: method, step=step)
+    out = {r["method"]: r for r in gradient_runs(problem, SimpleNamespace(grad_steps=4), list(errors))}
+    for (method, _), e in errors.items():
+        r = out[method]
+        assert r["relerr_steps"] == e
+        assert r["relerr"] == pytest.approx(math.sqrt(statistics.fmean([x * x - 0.05**2 for x in e])))
+        assert r["seconds_per_step"] == pytest.approx(0.3) and r["burn_in_seconds"] == 0.8
+        assert r["charged_seconds_per_step"] == pytest.approx(0.3 + 0.8 / 4)
+        assert r["stages"] == {"ris": pytest.approx(0.1), "other": pytest.approx(0.2)}
+    assert [seed for _, seed in seeds] == [1000, 1000, 1001, 1001, 1002, 1002, 1003, 1003]  # interleaved, seeds shared
+
+
+def test_calibration_gives_each_method_the_spp_that_fills_the_slower_restir_s_step(monkeypatch):
+    """The equal-time spp behind the slow quick run's equal-time columns, with step times known
+    and affine in spp (the probes stood in for): the budget is the slower ReSTIR variant's charged
+    step at equal samples (it keeps 1 spp), and every other method gets the spp whose step fills
+    that budget, after probes at the spps the earlier probes point to."""
+    from torchir.bench import restir as bench
+
+    a = parse_args(["--quick", "--restirs", "shadowed,persistent", "--cal-rounds", "3"])
+    times = {"direct": (0.05, 0.05), "B.1": (0.02, 0.03), "B.2": (0.1, 0.1), "ReSTIR (shadowed)": (0.2, 0.1),
+             "ReSTIR (persistent)": (0.4, 0.1)}  # charged seconds per step: fixed + per spp
+
+    def charged(method: str, spp: float) -> float:
+        fixed, per_spp = times[method]
+        return fixed + per_spp * spp
+
+    probed = []
+
+    def probe(problem, method, spp, a, seed0):
+        probed.append((method, spp))
+        return {"spp": spp, "step": charged(method, spp), "burn_in": 0.0, "charged": charged(method, spp)}
+
+    monkeypatch.setattr(bench, "probe", probe)
+    runs = [{"method": m, "spp": 1, "seconds_per_step": charged(m, 1), "burn_in_seconds": 0.0,
+             "charged_seconds_per_step": charged(m, 1)} for m in times]
+    cal = bench.calibrate(None, a, runs)
+    assert cal["budget_method"] == "ReSTIR (persistent)" and cal["budget_seconds"] == pytest.approx(0.5)
+    expected = {"direct": 9, "B.1": 16, "B.2": 4, "ReSTIR (shadowed)": 3, "ReSTIR (persistent)": 1}  # fixed + per_spp x spp = 0.5
+    assert cal["equal_time_spp"] == expected
+    assert cal["equal_time_spp_exact"] == {m: pytest.approx(float(s)) for m, s in expected.items()}
+    assert all(charged(m, s) == pytest.approx(0.5) for m, s in expected.items() if m != "ReSTIR (persistent)")
+    assert not any(m == "ReSTIR (persistent)" for m, _ in probed)  # the budget's owner is not probed
+
+
+def test_reconstruction_trains_every_method_for_the_budget_method_s_wall_time(monkeypatch):
+    """The slow quick run's "equal wall time" reconstructions, with training stood in for: per
+    gradient-paths mode and seed, the budget method trains first (its steps, no time limit),
+    then every other method for its wall time; the floor oracle, when asked, for the budget
+    method's steps with no time limit."""
+    from types import SimpleNamespace
+
+    from torchir.bench import restir as bench
+
+    a = parse_args(["--quick", "--restirs", "shadowed,persistent", "--grad-paths", "shared,decorrelated", "--recon-oracle"])
+    a.recon_seeds = 2
+    calls = []
+
+    def train(name, key, method, a, seed, targets, workdir, max_seconds, grad_paths="decorrelated", steps=None):
+        calls.append((grad_paths, seed, method, max_seconds, steps))
+        seconds = 3.0 + seed + (0.5 if grad_paths == "shared" else 0.0)
+        return {"method": method, "seed": seed, "steps": 7 + seed, "train_seconds": seconds if method == "ReSTIR (shadowed)" else 99.0,
+                "step_seconds": [1.0], "param_error": [0.2, 0.1], "final_param_error": 0.1}, "targets"
+
+    monkeypatch.setattr(bench, "train", train)
+    monkeypatch.setattr(bench, "gc", SimpleNamespace(collect=lambda: 0))  # no modules to free (0.2 s a collection here)
+    out = bench.reconstruction("oxalis_lite", "canvas.bsdf.reflectance.data", a, "ReSTIR (shadowed)")
+    expected = []
+    for mode in ("shared", "decorrelated"):
+        for seed in (0, 1):
+            budget = 3.0 + seed + (0.5 if mode == "shared" else 0.0)
+            expected += [(mode, seed, "ReSTIR (shadowed)", None, None), (mode, seed, ORACLE, None, 7 + seed)]
+            expected += [(mode, seed, m, budget, None) for m in a.methods if m != "ReSTIR (shadowed)"]
+    assert calls == expected
+    assert [len(out[mode]) for mode in ("shared", "decorrelated")] == [2 * (len(a.methods) + 1)] * 2
+
+
 def test_equal_time_error_reads_the_effective_sample_count_at_the_budget():
     """Variance 0.04 / spp and a step of 0.1 s + 0.05 s per spp: 1 / e² is linear in time, so the
     error at any budget between (or beyond) two runs is exact."""
@@ -345,6 +469,39 @@ def test_views_bench_tiny_run(tmp_path):
     table = restir_views.summarize({"per-sensor (burn-in 4)": {"rms_error": 0.2, "seconds": 2.0},
                                     "carry-over (burn-in 4)": {"rms_error": 0.1, "seconds": 4.0}}, [4])
     assert "| carry-over (burn-in 4) | 0.1000 | 4.00 | 2.00x |" in table
+
+
+def test_views_bench_errors_and_efficiency_from_known_gradients(monkeypatch):
+    """The numbers of the slow tiny run, from known inputs: ``run_method`` steps the views in
+    turn, each step's error is ``||g - g_ref(view)|| / ||g_ref(view)||`` against that view's
+    reference, the RMS over the steps is reported with the summed step times; ``summarize``'s
+    efficiency of carry-over against per-sensor chains of the same burn-in is
+    ``(e_base² t_base) / (e² t)`` (> 1: carry-over better at equal time)."""
+    from types import SimpleNamespace
+
+    from torchir.bench import restir_views
+
+    refs = [torch.tensor([3.0, 4.0]), torch.tensor([0.0, 2.0])]
+    grads = [torch.tensor([3.0, 5.0]), torch.tensor([0.0, 3.0]), torch.tensor([6.0, 8.0])]
+    views = []
+
+    def gradient(scene, texture, weights, view, spp, seed, sampler=None):
+        views.append((view, seed))
+        return grads[seed]
+
+    monkeypatch.setattr(restir_views, "_gradient", gradient)
+    monkeypatch.setattr("torchir.samplers.ReSTIRSampler", lambda scene, **options: options)
+    r = restir_views.run_method(None, None, [None, None], refs, {"candidates": 2}, SimpleNamespace(steps=3, views=2, spp=1))
+    assert views == [(0, 0), (1, 1), (0, 2)]
+    assert r["errors"] == pytest.approx([1 / 5, 1 / 2, 1.0])
+    assert r["rms_error"] == pytest.approx(math.sqrt((0.04 + 0.25 + 1.0) / 3))
+    assert r["seconds"] == r["clock"][-1] and all(b >= a for a, b in zip(r["clock"], r["clock"][1:]))
+    table = restir_views.summarize({"per-sensor (burn-in 4)": {"rms_error": 0.2, "seconds": 2.0},
+                                    "carry-over (burn-in 4)": {"rms_error": 0.1, "seconds": 4.0},
+                                    "carry-over (burn-in 8)": {"rms_error": 0.1, "seconds": 1.0}}, [4, 8])
+    assert "| carry-over (burn-in 4) | 0.1000 | 4.00 | 2.00x |" in table  # (0.04 x 2) / (0.01 x 4)
+    assert "| per-sensor (burn-in 4) | 0.2000 | 2.00 | - |" in table
+    assert "| carry-over (burn-in 8) | 0.1000 | 1.00 | - |" in table  # no per-sensor run of its burn-in
 
 
 def test_restir_variants_can_be_run_alone():

@@ -36,3 +36,50 @@ def test_quick_run_writes_its_tables_and_plots(tmp_path):
     assert saved["scored_pixels"] > 0 and all(r["relative_error"] >= 0 for r in res["methods"].values())
     for name in ("summary.md", "antithetic.png", "derivative_images.png"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_run_reads_each_method_s_error_less_the_reference_s_and_scales_it_to_equal_time(monkeypatch):
+    """The numbers of the slow quick run, from known derivative images (the renders stood in
+    for): a method's relative error is the RMS over its scored steps of ``|D - D_ref| / |D_ref|``
+    on the scored pixels, the reference's own relative error removed in quadrature; warm-up
+    steps are not scored; the equal-time error is that times ``sqrt(seconds per step / the
+    slowest method's)`` (a faster method gets more samples in the slowest one's time), and the
+    bias is the last step's summed difference over the summed |reference|."""
+    import numpy as np
+
+    ref = np.ones((4, 4, 3))
+    mask = np.ones((4, 4), bool)
+    mask[0, 0] = False  # not scored: its errors below must not count
+    ref_se = np.full((4, 4, 3), 0.01)
+    noise = {name: 0.1 * (i + 1) for i, name in enumerate(restir_antithetic.METHODS)}  # relative error of a step
+    seconds = {name: 0.1 * (i + 1) for i, name in enumerate(restir_antithetic.METHODS)}
+    steps: list[tuple[str, int]] = []
+
+    class Method:
+        def __init__(self, scene, options, candidates):
+            self.name = next(n for n, o in restir_antithetic.METHODS.items() if o is options)
+
+        def step(self, spp, seed):
+            steps.append((self.name, seed))
+            d = ref.copy()
+            d[1:] += noise[self.name] * (1 if seed % 2 else -1) * np.sqrt(45 / 36) * (1.0 + 0.5 * (seed == 101))
+            d[0, 0] = 99.0  # outside the mask
+            return d, seconds[self.name]
+
+    monkeypatch.setattr(restir_antithetic, "Method", Method)
+    monkeypatch.setattr(restir_antithetic, "scored_pixels", lambda scene: mask)
+    monkeypatch.setattr(restir_antithetic, "reference", lambda scene, a: (ref, ref_se))
+    res = restir_antithetic.run(restir_antithetic.parse_args(["--resolution", "4", "--steps", "3", "--warmup", "2"]))
+    ref_error = 0.01  # |ref_se| / |ref| over the 45 scored entries
+    assert res["reference_error"] == pytest.approx(ref_error) and res["scored_pixels"] == 15
+    slowest = max(seconds.values())
+    assert res["budget_seconds"] == pytest.approx(slowest)
+    for name, r in res["methods"].items():
+        # steps 100, 101, 102: relative errors c, 1.5 c, c (the 36 shifted entries of the 45 scored)
+        raw = noise[name] * np.sqrt((1 + 2.25 + 1) / 3)
+        assert r["raw_relative_error"] == pytest.approx(raw)
+        assert r["relative_error"] == pytest.approx(np.sqrt(raw**2 - ref_error**2))
+        assert r["equal_time_error"] == pytest.approx(r["relative_error"] * np.sqrt(seconds[name] / slowest))
+        assert r["seconds_per_step"] == pytest.approx(seconds[name])
+        assert r["bias"] == pytest.approx(-noise[name] * np.sqrt(45 / 36) * 36 / 45)  # step 102: shifted down
+    assert [seed for name, seed in steps if name == "material, ReSTIR"] == [0, 1, 100, 101, 102]

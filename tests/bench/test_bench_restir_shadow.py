@@ -161,3 +161,71 @@ def test_sgd_steps_by_the_gradient_and_adam_by_about_its_learning_rate():
         assert theta.item() == pytest.approx(expected, rel=1e-6), argv  # Adam's first step: lr x sign
     with pytest.raises(SystemExit):
         restir_shadow.parse_args(["--optimizer", "lbfgs"])
+
+
+class _StandIn:
+    """The renderer and the clock of the bench, stood in for: the image of pose ``theta`` at
+    seed ``s`` is ``theta * k(s)`` (so the L2 gradient against a zero target is ``2 theta
+    k(s)²``), and each render takes ``dt(s)`` seconds of a clock only renders advance."""
+
+    def __init__(self) -> None:
+        self.now, self.seeds = 0.0, []
+
+    @staticmethod
+    def k(seed: int) -> float:
+        return 1.0 + 0.1 * (seed % 3)
+
+    @staticmethod
+    def dt(seed: int) -> float:
+        return 0.01 * (1 + seed % 4)
+
+    def render(self, scene, values, spp, seed, sampler=None):
+        self.seeds.append(seed)
+        self.now += self.dt(seed)
+        (theta,) = values.values()
+        return theta * self.k(seed)
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
+def test_spread_and_equal_time_fits_read_the_steps_the_slow_run_times(monkeypatch):
+    """What the slow run's spread table and equal-time fits rest on, with known gradients and
+    step times: the spread drops the first two steps (burn-in, kernels), takes the mean and sd of
+    the gradients at ``--spread-angle`` only (the pose alternates), the median step time, and
+    ``var_x_time = sd² x seconds``; a fit with a budget steps until its clock reaches it (the
+    equal time of every method after the first), its rms over the last quarter of its time
+    deciding convergence."""
+    import statistics
+    from types import SimpleNamespace
+
+    import torch
+
+    fake = _StandIn()
+    monkeypatch.setattr(restir_shadow, "render", fake.render)
+    monkeypatch.setattr(restir_shadow, "time", SimpleNamespace(perf_counter=fake.perf_counter))
+    monkeypatch.setattr(restir_shadow, "sampler_for", lambda method, scene, burn_in, edge_candidates=1: None)
+    a = restir_shadow.parse_args(["--methods", "B.2", "--spread-steps", "8", "--optimizer", "sgd", "--lr", "0.25"])
+    target = torch.zeros(1)
+    (row,) = restir_shadow.gradient_spread({"B.2": (None, "pose")}, target, a).values()
+    seeds = range(5002, 5010)  # steps 2..9
+    at_angle = [2 * 10.0 * fake.k(s) ** 2 for s in seeds if s % 2 == 0]  # even steps: 10 degrees, odd: 10.5
+    assert row["mean"] == pytest.approx(statistics.fmean(at_angle)) and row["sd"] == pytest.approx(statistics.stdev(at_angle))
+    assert row["seconds_per_step"] == pytest.approx(float(torch.tensor([fake.dt(s) for s in seeds]).median()))
+    assert row["var_x_time"] == pytest.approx(row["sd"] ** 2 * row["seconds_per_step"])
+    every = [2 * (10.0 + 0.5 * (s % 2)) * fake.k(s) ** 2 for s in seeds]
+    assert (row["momentum_var"], row["momentum_x_independent"]) == pytest.approx(restir_shadow.momentum_variance(every), nan_ok=True)
+
+    fake.now, fake.seeds = 0.0, []
+    run = restir_shadow.fit(None, "pose", target, 8.0, None, a, 50, 0.1)
+    clock, angles, theta = [], [], 8.0
+    for step in range(50):
+        theta -= 0.25 * 2 * theta * fake.k(1000 + step) ** 2  # SGD on theta² k²
+        clock.append((clock[-1] if clock else 0.0) + fake.dt(1000 + step))
+        angles.append(theta)
+        if clock[-1] >= 0.1:
+            break
+    assert run["steps"] == len(angles) < 50 and clock[-1] >= 0.1 and run["seconds"] == pytest.approx(clock[-1])
+    assert run["angles"] == pytest.approx(angles) and run["clock"] == pytest.approx(clock)
+    assert run["last_quarter_rms"] == pytest.approx(restir_shadow.last_quarter_rms(angles, clock))
+    assert run["converged"] == (run["last_quarter_rms"] < a.tolerance)

@@ -41,3 +41,36 @@ def test_quick_run_writes_its_tables_and_plot(tmp_path):
     assert all(r["sd"] > 0 and r["mean"] != 0 for r in res["0"].values())
     for name in ("summary.md", "silhouette.png"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_measure_takes_the_spread_and_time_of_the_calls_after_the_warm_up(monkeypatch):
+    """The rows ``compare`` turns into the gains of the slow quick run, from known estimates
+    (the silhouette term and the clock stood in for): the mean, sd (n - 1) and s.e. of the
+    ``--calls`` estimates after ``--warmup`` untimed ones (seeds ``100 + i``), and the median
+    seconds of those calls; the blob is left at its lift."""
+    from types import SimpleNamespace
+
+    import drjit as dr
+    import numpy as np
+
+    import torchir.integrators._silhouettes as silhouettes
+
+    values = {100 + i: 3.0 + 0.5 * ((7 * i) % 5) for i in range(7)}
+    seconds = {100 + i: 0.01 * (1 + i % 3) for i in range(7)}
+    clock, poses = [0.0], []
+
+    def silhouette_backward(integrator, scene, sensor, adjoint, mesh, samples, seed, prev):
+        assert prev is None  # RIS: no reservoirs of a step
+        clock[0] += seconds[seed]
+        dr.backward(poses[-1] * values[seed])
+
+    monkeypatch.setattr(silhouettes, "silhouette_backward", silhouette_backward)
+    monkeypatch.setattr(restir_silhouette, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
+    problem = SimpleNamespace(scene=None, adjoint=None, mesh=None, pose=poses.append)
+    a = argparse.Namespace(samples=16, calls=4, warmup=3)
+    row = restir_silhouette.measure(problem, {"kind": "ris", "candidates": 4}, a)
+    scored = [values[s] for s in range(103, 107)]
+    assert row["mean"] == pytest.approx(np.mean(scored)) and row["sd"] == pytest.approx(np.std(scored, ddof=1))
+    assert row["se"] == pytest.approx(np.std(scored, ddof=1) / 2.0)
+    assert row["seconds"] == pytest.approx(np.median([seconds[s] for s in range(103, 107)]))
+    assert float(poses[-1][0]) == pytest.approx(restir_silhouette.LIFT) and not dr.grad_enabled(poses[-1])

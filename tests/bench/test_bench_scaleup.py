@@ -77,3 +77,19 @@ def test_quick_run_writes_results_and_plots(tmp_path):
     assert (tmp_path / "summary.md").is_file() and (tmp_path / "pareto.png").stat().st_size > 0
     saved = json.loads((tmp_path / "results.json").read_text())  # the docs' page rebuilds the tables from it
     assert scaleup.summary(saved).rstrip() == (tmp_path / "summary.md").read_text().rstrip()
+
+
+def test_results_json_rebuilds_the_tables_and_step_times_leave_out_the_first_step():
+    """What the slow run checks on a real run, from known runs: ``summary(results)`` (the docs'
+    results page) rebuilds from the saved JSON (tuples become lists there) exactly the tables
+    of ``summarize``; a configuration's seconds per step is the median over seeds of each run's
+    median step after its first (the compiling one), and its steps the median step count."""
+    runs = _runs(0) + _runs(1, slow=2.0)
+    for r in runs:  # the first step compiles; the others take 1, 2, 3, ... tenths (twice that for seed 1)
+        r["step_seconds"] = [30.0] + [0.1 * (1 + r["seed"]) * (i + 1) for i in range(r["steps"] - 1)]
+    summarized = scaleup.summarize(runs)
+    rows = {r["config"]: r for r in summarized["cbox_512"]}
+    assert rows[scaleup.FULL]["seconds_per_step"] == pytest.approx((0.15 + 0.3) / 2)  # medians of (0.1, 0.2) and (0.2, 0.4)
+    assert rows[scaleup.UNIFORM]["seconds_per_step"] == pytest.approx((0.25 + 0.5) / 2) and rows[scaleup.UNIFORM]["steps"] == 5
+    results = {"config": {"steps": 3, "seeds": 2}, "summary": summarized}
+    assert scaleup.summary(json.loads(json.dumps(results))) == scaleup.tables(summarized, {"steps": 3, "seeds": 2})

@@ -92,3 +92,50 @@ def test_quick_mode_all_tasks(tmp_path):
     for entry in report["summary"].values():
         assert entry["torchir"]["final_error"] < entry["torchir"]["initial_error"]
         assert entry["mitsuba"]["final_error"] < entry["mitsuba"]["initial_error"]
+
+
+def _result(bench, method: str, task: str, seed: int, final: float, warm: float, step: float, target: str = "png"):
+    """A finished fit: three warm-up steps of ``warm`` seconds, then three of ``step``."""
+    return bench.RunResult(method=method, task=task, seed=seed, target=target, steps=6, step_seconds=[warm] * 3 + [step] * 3,
+                           step_error=[0.5, 0.4, 0.3, 0.2, 0.2, final], final={}, final_error=final,
+                           per_param_error={"k": final}, wall_seconds=10.0)
+
+
+def test_compare_reads_the_ratios_and_goals_of_the_slow_runs_from_known_fits():
+    """The numbers the slow runs above report (summary.md's ratio columns and goal verdicts),
+    from fits with known errors and step times: error ratio = torchir's mean final error /
+    Mitsuba's, time ratio = mean step time after the warm-up steps, torchir's / Mitsuba's, an
+    error goal met at ratio <= 1.10 or within 2 s.e. of the seeds' spread; other targets (JPEG)
+    left out."""
+    bench = _bench()
+    assert bench.WARMUP == 3 and bench.ERROR_GOAL == bench.TIME_GOAL == 1.10
+    runs = [
+        _result(bench, "torchir", "red_wall", 0, 0.12, 5.0, 0.2), _result(bench, "torchir", "red_wall", 1, 0.14, 5.0, 0.2),
+        _result(bench, "mitsuba", "red_wall", 0, 0.10, 1.0, 0.1), _result(bench, "mitsuba", "red_wall", 1, 0.10, 1.0, 0.1),
+        _result(bench, "torchir", "red_wall", 0, 9.0, 5.0, 9.0, target="jpg"),  # another target: not compared
+        _result(bench, "torchir", "light", 0, 0.2, 0.5, 0.1), _result(bench, "torchir", "light", 1, 0.3, 0.5, 0.1),
+        _result(bench, "mitsuba", "light", 0, 0.2, 0.5, 0.1), _result(bench, "mitsuba", "light", 1, 0.2, 0.5, 0.104),
+    ]
+    out = bench.compare(runs)
+    red, light = out["red_wall"], out["light"]
+    assert red["torchir"]["final_error"] == pytest.approx(0.13) and red["torchir"]["seconds_per_step"] == pytest.approx(0.2)
+    assert red["torchir"]["initial_error"] == 0.5 and red["torchir"]["seeds"] == [0, 1]
+    assert red["error_ratio"] == pytest.approx(1.3) and red["time_ratio"] == pytest.approx(2.0)
+    # s.e. of the difference: sqrt((0.01414² + 0²) / 2) = 0.01; 0.03 apart is beyond 2 s.e.
+    assert not red["within_noise"] and not red["error_goal_met"] and not red["time_goal_met"]
+    # light: 0.25 against 0.2 (ratio 1.25), s.e. sqrt(0.0707² / 2) = 0.05: within noise
+    assert light["error_ratio"] == pytest.approx(1.25) and light["within_noise"] and light["error_goal_met"]
+    assert light["time_ratio"] == pytest.approx(0.1 / 0.102) and light["time_goal_met"]
+    table = bench.main_table(out)
+    assert "| 1.300, outside noise: NOT met |" in table and "| 2.000: NOT met |" in table
+    assert "| 1.250, within noise: MET |" in table and "| 0.980: MET |" in table
+
+
+def test_errors_are_the_rmse_over_every_entry_with_a_truth():
+    bench = _bench()
+    specs = [bench.ParamSpec("a", 0.5, 0.1, "none", None, np.array([1.0, 2.0])),
+             bench.ParamSpec("b", 0.5, 0.1, "none", None, np.array([0.0])),
+             bench.ParamSpec("c", 0.5, 0.1, "none", None, None)]  # no truth: not scored
+    total, per = bench.errors({"a": np.array([1.5, 2.0]), "b": np.array([-1.0]), "c": np.array([7.0])}, specs)
+    assert total == pytest.approx(np.sqrt((0.25 + 0.0 + 1.0) / 3))
+    assert per == {"a": pytest.approx(np.sqrt(0.125)), "b": pytest.approx(1.0)}

@@ -115,7 +115,8 @@ def test_learned_guide_keeps_ris_unbiased_and_cuts_its_variance_behind_the_slit(
     visibility included). Lanes that learned from 1024 usual candidates each then draw half
     their candidates from their guides: the mean agrees with usual sampling within 4 s.e.,
     and the variance per candidate is at least 4x lower (measured: 6.3x; the bright
-    light is seen through the slit as a strip ~1 % of its area)."""
+    light is seen through the slit as a strip ~1 % of its area). (The unbiasedness at CI size:
+    test_learned_guide_keeps_the_ris_weights_expectation.)"""
     from torchir.integrators._light import sample_candidate
 
     gm, scene, n = guide_module, ajar.mi_scene, 1 << 12
@@ -137,6 +138,33 @@ def test_learned_guide_keeps_ris_unbiased_and_cuts_its_variance_behind_the_slit(
     assert abs(guided.mean() - usual.mean()) < 4 * se, (guided.mean(), usual.mean(), se)
     assert se < 0.02 * usual.mean()  # the comparison can see a bias of a few per cent
     assert usual.var() > 4 * guided.var(), (usual.var(), guided.var())
+
+
+def test_learned_guide_keeps_the_ris_weights_expectation(ajar, guide_module):
+    """The unbiasedness half of the slow test above at CI size, through ``sample_candidate`` (where
+    RIS divides each guided candidate's weight by the mixture's density): 4096 lanes at one
+    painting point learn their guides from 256 usual candidates (about 3 in 4 find the strip),
+    then draw 64 candidates each, half from their guides; ``mean(p̂ / q)`` agrees with usual
+    sampling's within 4 s.e. The s.e. comes from the spread of the lanes' means (the lanes are
+    independent; a lane's candidates share its guide), about 3 % of the mean here, so a
+    weighting off by 15 % fails."""
+    from torchir.integrators._light import sample_candidate
+
+    gm, scene, n, draws_per_lane = guide_module, ajar.mi_scene, 1 << 12, 64
+    si = _at_one_point(scene, n)
+    learned = _learned_guide(gm, scene, si, n, 256)
+    assert (np.asarray(learned.light) != gm.NO_LIGHT).mean() > 0.5  # most lanes draw from a learned guide
+    draws = gm.GuideDraws(learned, 0.5)
+    sampler_u, sampler_g = _sampler(n, 7), _sampler(n, 8)
+    usual, guided = np.zeros(n), np.zeros(n)
+    for _ in range(draws_per_lane):
+        usual += np.asarray(sample_candidate(scene, si, sampler_u, si.is_valid())[3]) / draws_per_lane
+        guided += np.asarray(sample_candidate(scene, si, sampler_g, si.is_valid(), guide=draws)[3]) / draws_per_lane
+        sampler_u.schedule_state(), sampler_g.schedule_state()
+        dr.eval()
+    se = math.hypot(usual.std(ddof=1), guided.std(ddof=1)) / math.sqrt(n)
+    assert se < 0.04 * usual.mean()  # power: a bias of 16 % is 4 s.e.
+    assert abs(guided.mean() - usual.mean()) < 4 * se, (guided.mean(), usual.mean(), se)
 
 
 def test_guides_learn_only_non_delta_lights_and_forget_redrawn_lanes(ajar, guide_module):
@@ -194,6 +222,35 @@ def test_chains_with_a_light_guide_stay_unbiased(ajar):
     se = math.hypot(chains.std(ddof=1) / math.sqrt(len(chains)), ref_se)
     assert se < 0.03 * ref_mean
     assert abs(chains.mean() - ref_mean) < 4 * se, (chains.mean(), ref_mean, se)
+
+
+def test_an_unlit_room_renders_exactly_zero_with_zero_gradients(ajar):
+    """What the slow test_ajar_painting_closed_door_without_fill_is_exactly_dark
+    (tests/core/test_scenes_restir.py) checks, on this file's scene with the chains test's
+    options (their kernels serve both): with both lights at zero every candidate has ``p̂ = 0``,
+    as behind the closed door, so reservoirs hold ``W = 0`` and the guides never learn a light.
+    The image and the texture gradient must then be exactly 0, not NaN (a ``0 / 0`` in a fresh
+    or combined reservoir's ``W``, or in a guide's empty histograms), over two steps of guided
+    persistent chains (the second combines the first's reservoirs and draws from its guides).
+    The slow test also runs prb and spatiotemporal reuse, whose gradient kernels added ~6 s to
+    this file (measured, cold cache): the RIS, ``W`` and combination they run are these chains'.
+    That ``door=0, fill=0`` lets no light in is checked on the geometry in
+    tests/core/test_scenes_restir.py."""
+    import torch
+
+    key = "painting.bsdf.reflectance.data"
+    dark = {k: torch.zeros_like(ajar.get(k)) for k in ("gap_light.emitter.radiance.value", "fill.intensity.value")}
+    guided = ReSTIRSampler(ajar, preset="persistent", candidates=8, burn_in=16, offset_lifetime=4.0, light_guide=0.5)
+    for step in range(2):
+        texture = torch.full_like(ajar.get(key), 0.5).requires_grad_()
+        image = render(ajar, {key: texture, **dark}, spp=2, seed=step, sampler=guided)
+        (image * torch.linspace(1.0, 2.0, image.numel()).reshape(image.shape)).sum().backward()  # a non-zero adjoint
+        assert torch.equal(image.detach(), torch.zeros_like(image)), f"not dark (NaN: {bool(image.isnan().any())})"
+        assert torch.equal(texture.grad, torch.zeros_like(texture.grad)), f"not zero (NaN: {bool(texture.grad.isnan().any())})"
+    guide = guided.integrator.states[0].guide
+    assert guide is not None and float(dr.sum(guide.mass_l)[0]) == 0.0  # nothing learned
+    lit = render(ajar, {key: torch.full_like(ajar.get(key), 0.5)}, spp=2, seed=2, sampler=guided)
+    assert float(lit.mean()) > 0  # the same chains, lit: the zeros above came from the lights
 
 
 def test_guides_survive_a_checkpoint(ajar):

@@ -113,6 +113,9 @@ def test_antithetic_pairs_cancel_the_pixel_edge_fluxes(sheet):
 
 @pytest.mark.parametrize("form, antithetic, shared", [
     ("attached", False, True),
+    # Not shared, each member of a pair combines with its own neighbours: the code the attached
+    # case runs for its one member, while the pair's combination (MIS and normal test at each
+    # member's own point, whichever neighbour set) is the shared case's. 16 s of kernels: slow.
     pytest.param("material", True, False, marks=pytest.mark.slow),
     ("material", True, True),
 ])

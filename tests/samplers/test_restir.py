@@ -127,7 +127,9 @@ def test_ris_images_unbiased(oxalis, reference, target):
 
 @pytest.mark.parametrize("nn_backend, target", [
     # the back ends find the same neighbours (exact against brute force and one another in
-    # test_knn_and_watch.py), so in CI the chains run on the default one; all with -m slow
+    # test_knn_and_watch.py; the integrator's images with each, equal over 5 steps, in
+    # test_restir_integrator.py::test_frozen_and_traced_passes_agree), so in CI the chains run on
+    # the default one; all with -m slow
     pytest.param("kdtree", "shadowed", marks=pytest.mark.slow), pytest.param("grid", "shadowed", marks=pytest.mark.slow),
     ("screen", "shadowed"), ("screen", "unshadowed"),
 ])
