@@ -48,6 +48,9 @@ ELSEWHERE = {  # command -> "module::test" that runs it (the module under tests/
     "torchir fit --config configs/multiview.yaml --trainer.strategy ddp --trainer.devices 2 --trainer.accelerator cpu":
         "training/test_training_ddp::test_ddp_two_processes_match_one_process",
     "torchir fit --help": "training/test_training_cli::test_fit_help_starts_with_torchir_s_own_flags",
+    "torchir fit --config configs/examples/mesh_from_sphere.yaml":
+        "training/test_mesh_fit::test_the_recovered_mesh_is_written_as_positions_and_gets_closer_to_the_truth",
+    "python3 configs/examples/mesh_from_sphere.py": "training/test_mesh_fit::test_the_shipped_truth_mesh_is_the_factory_s_output",
     "torchir tune configs/painting.yaml --quick":
         "training/test_tune::test_tune_command_writes_the_table_results_plot_and_a_tuned_config_that_loads",
 }

@@ -104,11 +104,13 @@ class ImageWriter(pl.Callback):
 
 
 class CurvePlotter(pl.Callback):
-    """Keep the per-step metrics and write ``curves.png`` (loss, image and parameter error
-    against steps and against wall time) at the end. Its history is saved in checkpoints, so a
+    """Keep the per-step metrics and write ``curves.png`` (loss, image and parameter error, and
+    a mesh's Chamfer/Hausdorff distances to its truth mesh on the steps that log them, against
+    steps and against wall time) at the end. Its history is saved in checkpoints, so a
     resumed run plots the whole trajectory."""
 
     METRICS = ("loss", "image_error", "param_error")
+    PREFIXES = ("chamfer/", "hausdorff/")  # per-parameter metrics, plotted where a step has them
 
     def __init__(self) -> None:
         self.history: list[dict[str, float]] = []
@@ -121,7 +123,7 @@ class CurvePlotter(pl.Callback):
         metrics = pl_module.step_metrics
         # the step whose metrics were just logged (metrics.csv's numbering): global_step has moved on
         row = {"step": float(trainer.global_step - 1), "seconds": time.perf_counter() - self._start}
-        row.update({m: float(metrics[m]) for m in self.METRICS if m in metrics})
+        row.update({m: float(v) for m, v in metrics.items() if m in self.METRICS or m.startswith(self.PREFIXES)})
         self.history.append(row)
         self._elapsed = row["seconds"]
 
@@ -140,6 +142,7 @@ class CurvePlotter(pl.Callback):
         import matplotlib.pyplot as plt
 
         metrics = [m for m in self.METRICS if any(m in r for r in self.history)]
+        metrics += sorted({m for r in self.history for m in r if m.startswith(self.PREFIXES)})
         fig, axes = plt.subplots(2, len(metrics), figsize=(4 * len(metrics), 6.5), squeeze=False)
         for col, metric in enumerate(metrics):
             rows = [r for r in self.history if metric in r]

@@ -11,7 +11,7 @@ Ctrl-C); earlier runs are never overwritten.
 torchir's additions to the command line:
 
 - Relative paths in a config (``model.scene``, ``data.targets``, a parameter's image ``init`` or
-  ``truth``, a derived parameter's ``function`` file) are relative to that config file; paths
+  ``truth``, a truth mesh, a derived parameter's ``function`` file) are relative to that config file; paths
   typed on the command line (``--model.scene``, ``--data.targets``, ``--set KEY.init=FILE``) are
   relative to the working directory, as a shell user expects (``results/`` is written there too).
 - ``--set KEY.FIELD=VALUE`` sets one field of one ``model.parameters`` entry (Mitsuba keys
@@ -40,7 +40,7 @@ from .. import backend
 from .callbacks import CurvePlotter, ImageWriter
 from .data import ViewDataModule
 from .module import InverseRenderingModule, NonFiniteLossError
-from .parameters import ParameterConfig, is_image_file
+from .parameters import ParameterConfig, is_image_file, is_mesh_file
 
 __all__ = ["TorchirCLI", "main", "quiet_lightning", "split_parameter_sets"]
 
@@ -81,7 +81,12 @@ def split_parameter_sets(argv: list[str]) -> tuple[list[str], list[tuple[str, st
         else:
             rest.append(arg)
         i += 1
-    return rest, [(k, f, _absolute(v, cwd) if f in ("init", "truth") and is_image_file(v) else v) for k, f, v in sets]
+    return rest, [(k, f, _absolute(v, cwd) if f in ("init", "truth") and _is_file(v) else v) for k, f, v in sets]
+
+
+def _is_file(value: Any) -> bool:
+    """Whether an ``init``/``truth`` value names a file (an image, or a truth mesh)."""
+    return is_image_file(value) or is_mesh_file(value)
 
 
 COMMAND_LINE_PATHS = ("--model.scene", "--data.targets")
@@ -212,7 +217,7 @@ class TorchirCLI(LightningCLI):
         for entry in (model.parameters or {}).values():
             for field in ("init", "truth"):
                 value = entry.get(field) if isinstance(entry, dict) else getattr(entry, field, None)
-                if is_image_file(value):
+                if _is_file(value):
                     if isinstance(entry, dict):
                         entry[field] = _absolute(value, base)
                     else:
@@ -262,7 +267,8 @@ class TorchirCLI(LightningCLI):
         if model.nonfinite is not None:
             raise NonFiniteLossError(model.nonfinite)
         if trainer.is_global_zero:
-            metrics = {k: float(v) for k, v in model.step_metrics.items() if k in ("loss", "param_error", "image_error")}
+            metrics = {k: float(v) for k, v in model.step_metrics.items()
+                       if k in ("loss", "param_error", "image_error") or k.startswith("chamfer/")}
             summary = ", ".join(f"{k} {v:.4g}" for k, v in metrics.items())
             print(f"[torchir] finished {trainer.global_step} steps ({summary}); outputs in {model.results_dir}")
 
@@ -270,7 +276,7 @@ class TorchirCLI(LightningCLI):
 TORCHIR_HELP = """torchir's additions (the rest is LightningCLI's help, below):
   --set KEY.FIELD=VALUE   one field of one model.parameters entry, e.g.
                           --set 'red.reflectance.value.init=[0.3, 0.3, 0.3]' or --set red.reflectance.value.lr=0.05
-                          (FIELD: init, bounds, lr, transform, seed, truth; repeat for more)
+                          (FIELD: init, bounds, lr, transform, seed, truth, parametrization; repeat for more)
   --model.parameters MAP  merged into the config's map field by field, e.g. --model.parameters '{KEY: {lr: 0.1}}'
   --ckpt_path last        resume from the newest run's checkpoints/last.ckpt (same logger save_dir/name)
   paths                   a config's relative paths are relative to the config file; paths typed here

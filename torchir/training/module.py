@@ -18,11 +18,14 @@ from ..derived import declare as declare_derived
 from ..imageio import clipped_mask
 from ..jpeg import CodecCorrection
 from ._resolve import _as_config, _from_checkpoint, _load_scene, _resolve_denoiser, _resolve_loss, _resolve_sampler, _to_checkpoint
-from .parameters import ParameterConfig, SceneParameter, resolve_value
+from .parameters import LargeStepsParameter, ParameterConfig, SceneParameter, is_mesh_file, large_steps_lambda, resolve_value
 
 __all__ = ["InverseRenderingModule", "NonFiniteLossError"]
 
 _GOLDEN = 2654435761  # Knuth's multiplicative hash: spreads base seeds far apart
+OPTIMIZERS = ("adam", "adam_uniform", "sgd")
+DISTANCE_SAMPLES = 20000  # surface samples per mesh of the Chamfer/Hausdorff distances (torchir.geometry's default)
+DISTANCE_PREFIXES = ("chamfer/", "hausdorff/")  # metric names of the mesh distances: "chamfer/<key>"
 
 
 class NonFiniteLossError(RuntimeError):
@@ -73,8 +76,14 @@ class InverseRenderingModule(pl.LightningModule):
             level set by the gradient noise (a small pixel budget levels off above the full
             image's error); a decay lowers that floor over the run (measured with
             ``torchir bench scaleup``: docs/training.md, "Measurements behind the design").
-        optimizer: ``adam`` (default) or ``sgd``.
+        optimizer: ``adam`` (default), ``adam_uniform`` (:class:`torchir.geometry.AdamUniform`,
+            for every parameter: one second-moment scale per parameter tensor, as Mitsuba's shape
+            tutorial optimises a Large Steps latent; a scalar parameter steps as with Adam) or ``sgd``.
         preview_spp: samples per pixel of the images written for people (initial/current/final).
+        distance_every_n_steps: how often the Chamfer/Hausdorff distances of a mesh parameter
+            with a truth mesh are logged (``chamfer/<key>``, ``hausdorff/<key>``; ~0.1-0.8 s
+            each time): on the first row the loggers write, then on the first written row at
+            least this many steps after the last, and on the final row.
     """
 
     def __init__(
@@ -93,8 +102,9 @@ class InverseRenderingModule(pl.LightningModule):
         seed: int = 0,
         lr: float = 0.05,
         lr_half_life: Optional[int] = None,
-        optimizer: Literal["adam", "sgd"] = "adam",
+        optimizer: Literal["adam", "adam_uniform", "sgd"] = "adam",
         preview_spp: int = 64,
+        distance_every_n_steps: int = 10,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["loss", "denoiser"])
@@ -104,6 +114,10 @@ class InverseRenderingModule(pl.LightningModule):
                 raise ValueError(f"model.{name} must be >= 1, got {value}")
         if not (isinstance(lr, (int, float)) and 0 < lr < float("inf")):
             raise ValueError(f"model.lr must be a finite number > 0 (gradient descent), got {lr!r}")
+        if optimizer not in OPTIMIZERS:
+            raise ValueError(f"model.optimizer must be one of {list(OPTIMIZERS)}, got {optimizer!r}")
+        if isinstance(distance_every_n_steps, bool) or not isinstance(distance_every_n_steps, int) or distance_every_n_steps < 1:
+            raise ValueError(f"model.distance_every_n_steps must be a number of steps >= 1, got {distance_every_n_steps!r}")
         if lr_half_life is not None and (isinstance(lr_half_life, bool) or not isinstance(lr_half_life, int) or lr_half_life < 1):
             raise ValueError(f"model.lr_half_life must be a number of steps >= 1 (or null), got {lr_half_life!r}")
         self.scene = _load_scene(scene, resolution, dict(scene_options or {}), integrator)
@@ -119,6 +133,8 @@ class InverseRenderingModule(pl.LightningModule):
             raise ValueError("model.parameters is empty: nothing to optimise")
         self.configs = {key: _as_config(key, cfg) for key, cfg in parameters.items()}
         self.keys = list(self.configs)
+        # truth meshes (``truth: mesh.ply``): (vertices (V, 3), faces (F, 3)), read once, on the host
+        self.truth_meshes = {key: self._truth_mesh(key) for key, cfg in self.configs.items() if is_mesh_file(cfg.truth)}
         self.scene_parameters = nn.ModuleList(self._build_parameter(key) for key in self.keys)
         self.loss_fn = _resolve_loss(loss)
         self.denoiser = _resolve_denoiser(denoiser)
@@ -138,18 +154,72 @@ class InverseRenderingModule(pl.LightningModule):
             _check_sampler(self.scene, self.sampler, frozenset(derived[k].target if k in derived else k for k in self.keys))
         self.spp, self.spp_grad, self.seed, self.lr = spp, spp if spp_grad is None else spp_grad, seed, lr
         self.optimizer_name, self.preview_spp, self.lr_half_life = optimizer, preview_spp, lr_half_life
+        self.distance_every_n_steps = distance_every_n_steps
+        self._distances_at: Optional[int] = None  # the last step whose row has the mesh distances
+        self._distance_cache: Optional[tuple[Any, dict[str, float]]] = None
         self.nonfinite: Optional[str] = None  # set when a non-finite loss stopped the run
         self.step_metrics: dict[str, float] = {}  # the last step's scalars (loss, errors, paths, sampler/*)
         self._write_logs_at: Optional[int] = None
 
     # ------------------------------------------------------------------------ parameters
-    def _build_parameter(self, key: str) -> SceneParameter:
+    def _build_parameter(self, key: str) -> Union[SceneParameter, LargeStepsParameter]:
         info = self.scene.info(key)  # KeyError with close matches
         if not info.bindable:
             raise TypeError(f"parameters[{key!r}]: {key!r} has type {info.type_name}, which torchir cannot optimise: {_unbindable_hint(key, info.type_name)}")
+        if self.configs[key].parametrization is not None:
+            return self._build_large_steps(key)
         initial = self._config_value(key, self.configs[key].init, "init")
         self.scene.check_values({key: initial.requires_grad_()})  # dtype, shape, differentiable, finite
         return SceneParameter(key, initial.detach(), self.configs[key])
+
+    def mesh_id(self, key: str) -> Optional[str]:
+        """The id of the scene mesh whose ``vertex_positions`` ``key`` is, else None."""
+        import mitsuba as mi
+
+        if key in self.scene.derived or not key.endswith(".vertex_positions"):
+            return None
+        shape = key.removesuffix(".vertex_positions")
+        return shape if any(isinstance(s, mi.Mesh) and s.id() == shape for s in self.scene.mi_scene.shapes()) else None
+
+    def mesh_faces(self, key: str) -> torch.Tensor:
+        """``(F, 3)`` int64 host faces of the scene mesh of parameter ``key``."""
+        return self.scene.get(f"{self.mesh_id(key)}.faces").detach().to(torch.int64).cpu().reshape(-1, 3)
+
+    def _build_large_steps(self, key: str) -> LargeStepsParameter:
+        """The Large Steps parameter of a mesh's ``vertex_positions`` (``parametrization``)."""
+        from ..geometry import LargeSteps
+
+        config = self.configs[key]
+        lambda_ = large_steps_lambda(key, config.parametrization)
+        if self.mesh_id(key) is None:
+            raise ValueError(f"parameters[{key!r}].parametrization (large_steps) applies to a mesh's vertex positions "
+                             f"('<shape>.vertex_positions' of a mesh in the scene), not to {key!r}")
+        if config.transform != "none" or config.bounds is not None:
+            raise ValueError(f"parameters[{key!r}]: a large_steps parametrization takes neither transform nor bounds "
+                             f"(the latent is (I + λL) x), got transform {config.transform!r}, bounds {config.bounds!r}")
+        init = config.init
+        if isinstance(init, (int, float)) and not isinstance(init, bool):
+            if init != ParameterConfig.init:
+                raise ValueError(f"parameters[{key!r}].init: a constant {init!r} would put every vertex at one point; leave "
+                                 "init out (the scene's mesh), or give 'scene' or explicit positions")
+            init = "scene"  # the default init of a mesh is the mesh the scene loaded
+        initial = self._config_value(key, init, "init")
+        self.scene.check_values({key: initial.requires_grad_()})
+        return LargeStepsParameter(key, LargeSteps(self.scene, key, lambda_=lambda_), initial.detach())
+
+    def _truth_mesh(self, key: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """The truth mesh file of parameter ``key`` as host ``(vertices, faces)``."""
+        from pathlib import Path
+
+        from ..geometry import read_mesh
+
+        path = self.configs[key].truth
+        if self.mesh_id(key) is None:
+            raise ValueError(f"parameters[{key!r}].truth {path!r} is a mesh file, which only a mesh's vertex positions "
+                             f"('<shape>.vertex_positions') can have as truth")
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"parameters[{key!r}].truth: mesh file not found: {path!r}")
+        return read_mesh(path, device="cpu")
 
     def _config_value(self, key: str, spec, field: str) -> torch.Tensor:
         """A config value (``init``/``truth`` forms) of parameter ``key`` as a tensor of its shape."""
@@ -168,8 +238,62 @@ class InverseRenderingModule(pl.LightningModule):
             spec = self.configs[key].truth
             if spec is None and explicit_only:
                 continue
+            if key in self.truth_meshes:  # as positions, when the truth mesh has the scene mesh's vertex list
+                vertices = self.truth_meshes[key][0]
+                scene_value = self.scene.get(key)
+                if vertices.numel() == scene_value.numel():
+                    truth[key] = vertices.reshape(scene_value.shape).to(scene_value)
+                elif not explicit_only:
+                    raise ValueError(
+                        f"parameters[{key!r}].truth {spec!r} has {vertices.shape[0]} vertices, the scene's mesh "
+                        f"{scene_value.numel() // 3}: synthetic targets (data.targets: null) render the truth as the "
+                        f"scene's vertex positions, so they need a truth mesh on the same vertex list; give data.targets images"
+                    )
+                continue
             truth[key] = self._config_value(key, "scene" if spec is None else spec, "truth")
         return truth
+
+    def value_truth(self, explicit_only: bool = False) -> dict[str, torch.Tensor]:
+        """:meth:`ground_truth` without the parameters whose truth is a mesh file (their error is
+        their :meth:`mesh_distances`, not an RMSE over vertex lists): the parameter-error truths."""
+        return {k: v for k, v in self.ground_truth(explicit_only).items() if k not in self.truth_meshes}
+
+    @torch.no_grad()
+    def mesh_distances(self, values: Optional[dict[str, torch.Tensor]] = None) -> dict[str, float]:
+        """``{"chamfer/<key>": d, "hausdorff/<key>": h}`` of each parameter with a truth mesh: the
+        symmetric *squared* Chamfer distance and the Hausdorff distance between the current mesh
+        (``values``: the current :meth:`scene_values`, when already computed) and the truth mesh,
+        from :data:`DISTANCE_SAMPLES` area-uniform samples of each (:mod:`torchir.geometry`)."""
+        from ..geometry import chamfer_distance, hausdorff_distance
+
+        if not self.truth_meshes:
+            return {}
+        state = (self.global_step, tuple(p.latent._version for p in self.scene_parameters), values is None)
+        if values is None and self._distance_cache is not None and self._distance_cache[0] == state:
+            return dict(self._distance_cache[1])
+        values = self.scene_values() if values is None else values
+        out = {}
+        for key, truth in self.truth_meshes.items():
+            mesh = (values[key].detach().reshape(-1, 3).cpu(), self.mesh_faces(key))
+            out[f"chamfer/{key}"] = chamfer_distance(mesh, truth, samples=DISTANCE_SAMPLES)
+            out[f"hausdorff/{key}"] = hausdorff_distance(mesh, truth, samples=DISTANCE_SAMPLES)
+        self._distance_cache = (state, dict(out))
+        return out
+
+    def distance_floors(self) -> dict[str, float]:
+        """``{key: Chamfer distance of its truth mesh to itself}``: the sampling floor of
+        :meth:`mesh_distances` (about ``2 S / (π n)`` for area ``S``, ``n`` samples)."""
+        from ..geometry import chamfer_distance
+
+        return {key: chamfer_distance(truth, truth, samples=DISTANCE_SAMPLES, seed=1) for key, truth in self.truth_meshes.items()}
+
+    def _distances_due(self) -> bool:
+        """Whether this step's (written) row gets the mesh distances (``distance_every_n_steps``)."""
+        step = self.global_step
+        if self._distances_at is not None and 0 <= step - self._distances_at < self.distance_every_n_steps:
+            return False
+        self._distances_at = step
+        return True
 
     @torch.no_grad()
     def project_parameters(self) -> None:
@@ -210,7 +334,7 @@ class InverseRenderingModule(pl.LightningModule):
     def final_metrics(self) -> dict[str, float]:
         """The last step's metrics with the parameter errors of the values after its update (a
         step's own ``param_error`` is of the values it rendered, before its update)."""
-        return {**self.step_metrics, **self.error_metrics()}
+        return {**self.step_metrics, **self.error_metrics(), **self.mesh_distances()}
 
     def on_train_end(self) -> None:
         """Log the errors of the final values as one more row, at the step count (a run of N
@@ -218,7 +342,7 @@ class InverseRenderingModule(pl.LightningModule):
         keep them in :attr:`step_metrics` for the ``finished`` line."""
         final = self.final_metrics()
         self.step_metrics = final
-        errors = {k: v for k, v in final.items() if k.startswith("param_error")}
+        errors = {k: v for k, v in final.items() if k.startswith(("param_error", *DISTANCE_PREFIXES))}
         if errors and self.trainer.world_size == 1 and self.global_step > 0:
             for logger in self.loggers:
                 logger.log_metrics({**errors, "epoch": float(self.current_epoch)}, step=self.global_step)
@@ -382,8 +506,10 @@ class InverseRenderingModule(pl.LightningModule):
         if self.sampler is not None and hasattr(self.sampler, "diagnostics"):
             metrics.update({f"sampler/{name}": float(value) for name, value in self.sampler.diagnostics().items()})
         metrics.update(self.error_metrics(values))
-        self.step_metrics = metrics
         self._write_logs_at = self.global_step if self._loggers_write() else None
+        if self.truth_meshes and self._write_logs_at is not None and self._distances_due():
+            metrics.update(self.mesh_distances(values))  # costly (~0.1-0.8 s): on some written rows only
+        self.step_metrics = metrics
         distributed = self.trainer.world_size > 1
         self.log("loss", loss, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True, logger=distributed)
         if not distributed or self._write_logs_at is None:
@@ -452,7 +578,7 @@ class InverseRenderingModule(pl.LightningModule):
                 "pixel sampling compares unclipped pixels, but the targets clip at "
                 f"{datamodule.saturation} (8/16-bit files): use EXR targets, or set data.saturation: null"
             )
-        self._truth = self.ground_truth(explicit_only=not synthetic)
+        self._truth = self.value_truth(explicit_only=not synthetic)
         if self.pixel_mode:  # under DDP the pixel budget and Stage 1 are shared by the processes
             self.sampler.distribute(self.trainer.global_rank, self.trainer.world_size)
         plan_run = getattr(self.sampler, "plan_run", None)  # ReSTIR "auto" charges its burn-in over the run
@@ -466,7 +592,14 @@ class InverseRenderingModule(pl.LightningModule):
             {"params": [p.latent], "lr": self.lr if self.configs[key].lr is None else self.configs[key].lr, "name": key}
             for key, p in zip(self.keys, self.scene_parameters)
         ]
-        optimizer = torch.optim.SGD(groups, lr=self.lr) if self.optimizer_name == "sgd" else torch.optim.Adam(groups, lr=self.lr)
+        if self.optimizer_name == "sgd":
+            optimizer = torch.optim.SGD(groups, lr=self.lr)
+        elif self.optimizer_name == "adam_uniform":
+            from ..geometry import AdamUniform
+
+            optimizer = AdamUniform(groups, lr=self.lr)
+        else:
+            optimizer = torch.optim.Adam(groups, lr=self.lr)
         if self.lr_half_life is None:
             return optimizer
         decay = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=0.5 ** (1.0 / self.lr_half_life))

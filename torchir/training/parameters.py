@@ -10,16 +10,25 @@ transform     x = T(u)               use
 ``sigmoid``   ``lo + (hi-lo)σ(u)``   values in ``bounds`` (default (0, 1)) without clamping
 ``log``       ``exp(u)``             positive values spanning magnitudes
 ============  =====================  ==========================================
+
+A mesh's ``<shape>.vertex_positions`` can instead take ``parametrization: {type: large_steps,
+lambda: λ}`` (:class:`LargeStepsParameter`): the latent is the Large Steps differential
+``u = (I + λL) x`` of the scene's mesh and the scene value ``x = (I + λL)^{-1} u``
+(:class:`torchir.geometry.LargeSteps`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Optional, Union
+import math
+from typing import Any, Literal, Optional, Union
 
 import torch
 from torch import nn
 
-__all__ = ["ParameterConfig", "SceneParameter"]
+__all__ = ["ParameterConfig", "SceneParameter", "LargeStepsParameter", "PARAMETRIZATIONS", "large_steps_lambda"]
+
+PARAMETRIZATIONS = ("large_steps",)  # the types of ParameterConfig.parametrization
+MESH_SUFFIXES = (".ply", ".obj")  # mesh files (a truth mesh), read by torchir.geometry.read_mesh
 
 InitValue = Union[float, list, str]
 
@@ -42,7 +51,14 @@ class ParameterConfig:
         transform: ``none``, ``sigmoid`` or ``log`` (see the module docstring).
         seed: seed of a ``random`` init.
         truth: the ground-truth value (same forms as ``init``) for synthetic targets and the
-            parameter error; default: the value the scene was loaded with.
+            parameter error; default: the value the scene was loaded with. For a mesh's
+            ``vertex_positions``, also a mesh file (``.ply``/``.obj``): the parameter's error is
+            then its Chamfer and Hausdorff distances to that mesh (any topology); synthetic
+            targets render it when it has the scene mesh's vertex count.
+        parametrization: ``{type: large_steps, lambda: λ}`` (``λ > 0``, default 19) for a mesh's
+            ``<shape>.vertex_positions``: optimise the Large Steps latent of the scene's mesh
+            (:class:`LargeStepsParameter`). ``init`` is then the scene's mesh (the default, or
+            ``scene``) or explicit positions; ``transform`` must stay ``none``, without ``bounds``.
     """
 
     init: InitValue = 0.5
@@ -51,6 +67,32 @@ class ParameterConfig:
     transform: Literal["none", "sigmoid", "log"] = "none"
     seed: int = 0
     truth: Optional[InitValue] = None
+    parametrization: Optional[dict[str, Any]] = None
+
+
+def is_mesh_file(spec: object) -> bool:
+    """Whether a config value names a mesh file (by its suffix: ``.ply``, ``.obj``)."""
+    return isinstance(spec, str) and spec.lower().endswith(MESH_SUFFIXES)
+
+
+def large_steps_lambda(key: str, spec: Any) -> float:
+    """The ``λ`` of a checked ``parametrization`` mapping ``{type: large_steps, lambda: λ}``."""
+    from ..geometry.largesteps import DEFAULT_LAMBDA
+
+    where = f"parameters[{key!r}].parametrization"
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where} must be a mapping {{type: large_steps, lambda: λ}}, got {spec!r}")
+    options = dict(spec)
+    kind = options.pop("type", None)
+    if kind not in PARAMETRIZATIONS:
+        raise ValueError(f"{where}.type must be one of {list(PARAMETRIZATIONS)}, got {kind!r}")
+    lambda_ = options.pop("lambda", DEFAULT_LAMBDA)
+    if options:
+        raise ValueError(f"{where} ({kind}) has unknown option(s) {sorted(options)}; allowed: ['lambda']")
+    if isinstance(lambda_, bool) or not isinstance(lambda_, (int, float)) or not math.isfinite(lambda_) or lambda_ <= 0:
+        raise ValueError(f"{where}.lambda must be a finite number > 0 (how far a gradient spreads over the surface; "
+                         f"Mitsuba's tutorial uses 25), got {lambda_!r}")
+    return float(lambda_)
 
 
 def is_image_file(spec: object) -> bool:
@@ -158,6 +200,37 @@ class SceneParameter(nn.Module):
     def extra_repr(self) -> str:
         bounds = self.bounds if self.bounds is None or isinstance(self.bounds[0], float) else _show(self.bounds)
         return f"key={self.key!r}, shape={tuple(self.latent.shape)}, transform={self.transform!r}, bounds={bounds}"
+
+
+class LargeStepsParameter(nn.Module):
+    """A mesh's vertex positions optimised through Large Steps: the ``nn.Parameter`` ``latent``
+    is ``u = (I + λL) x`` (flat ``(3n,)``, ``n`` welded vertices) and :meth:`forward` gives the
+    scene value ``x = (I + λL)^{-1} u`` (flat ``(3V,)``, Mitsuba's ``vertex_positions``).
+
+    Args:
+        key: the Mitsuba key ``<shape>.vertex_positions``.
+        large_steps: the mesh's :class:`torchir.geometry.LargeSteps`.
+        initial: the initial positions ``x0`` (flat ``(3V,)``).
+    """
+
+    transform = "none"
+    bounds = None
+
+    def __init__(self, key: str, large_steps: Any, initial: torch.Tensor) -> None:
+        super().__init__()
+        self.key, self.large_steps = key, large_steps
+        self.latent = nn.Parameter(large_steps.to_differential(initial.detach().float().reshape(-1)).detach())
+
+    def forward(self) -> torch.Tensor:
+        """The vertex positions ``(I + λL)^{-1} latent``, flat ``(3V,)`` float32."""
+        return self.large_steps.from_differential(self.latent)
+
+    def project(self) -> None:
+        """Nothing to enforce (no bounds on a mesh)."""
+
+    def extra_repr(self) -> str:
+        return (f"key={self.key!r}, parametrization='large_steps', lambda={self.large_steps.lambda_}, "
+                f"vertices={self.large_steps.vertex_count}, welded={self.large_steps.welded_count}")
 
 
 Bounds = Union[tuple[float, float], tuple[torch.Tensor, torch.Tensor]]

@@ -7,6 +7,9 @@ Used at the end of a run, on Ctrl-C (:class:`~torchir.training.callbacks.ResultW
   (the scene value ``T(latent)``, not the latent): small values inline, ``(H, W, C)`` textures
   as ``parameters/<key>.exr``, other large arrays (vertex positions) as ``parameters/<key>.npy``;
   with the parameter error against the truth where one is known.
+- ``meshes/<shape>.ply``: each optimised mesh (a ``<shape>.vertex_positions`` parameter) with the
+  scene's faces; its ``result.yaml`` entry names the file and, with a truth mesh, holds the
+  squared symmetric Chamfer and the Hausdorff distances to it and the Chamfer sampling floor.
 - ``images/final_v<view>.{png,exr}``: low-noise renders of the recovered scene.
 """
 from __future__ import annotations
@@ -45,6 +48,14 @@ def parameter_entry(key: str, value: torch.Tensor, folder: Path) -> Any:
     return {"file": str(path.relative_to(folder)), "shape": list(value.shape), "mean": _rounded(_summary_mean(value))}
 
 
+def mesh_entry(folder: Path, shape: str, vertices: torch.Tensor, faces: torch.Tensor) -> str:
+    """Write ``meshes/<shape>.ply`` (binary PLY) in ``folder``; its path relative to ``folder``."""
+    from ..geometry import write_mesh
+
+    path = write_mesh(folder / "meshes" / f"{shape}.ply", vertices.detach().reshape(-1, 3).cpu(), faces)
+    return str(path.relative_to(folder))
+
+
 def _summary_mean(value: torch.Tensor) -> torch.Tensor:
     """Per-channel mean of a ``(..., C)`` value with few channels; one mean for a flat ``(n,)`` one."""
     if value.dim() >= 2 and value.shape[-1] <= INLINE_MAX:
@@ -71,11 +82,25 @@ def write_results(module, folder: str | Path, step: int, views: Optional[list[in
     folder.mkdir(parents=True, exist_ok=True)
     with torch.no_grad():
         values = {k: v.detach() for k, v in module.scene_values().items()}
+        truth_meshes = getattr(module, "truth_meshes", {})  # (modules without meshes need not have these)
         truth = module.ground_truth(explicit_only=True)
+        if truth and truth_meshes:  # a truth mesh's error is its distances, not an RMSE over vertices
+            truth = {k: v for k, v in truth.items() if k not in truth_meshes}
         error = module.parameter_error(truth) if truth else None
+        distances = module.mesh_distances() if truth_meshes else {}
+        floors = module.distance_floors() if truth_meshes else {}
     result: dict[str, Any] = {"step": int(step), "scene": module.scene.name, "parameters": {}}
     for key, value in values.items():
-        result["parameters"][key] = parameter_entry(key, value, folder)
+        entry = parameter_entry(key, value, folder)
+        shape = module.mesh_id(key) if hasattr(module, "mesh_id") else None
+        if shape is not None:
+            entry = {"mesh": mesh_entry(folder, shape, value, module.mesh_faces(key)), **entry}
+            if key in truth_meshes:
+                entry["truth"] = str(module.configs[key].truth)
+                for name in ("chamfer", "hausdorff"):
+                    entry[name] = float(f"{distances[f'{name}/{key}']:.6g}")
+                entry["chamfer_floor"] = float(f"{floors[key]:.6g}")
+        result["parameters"][key] = entry
     if error is not None:
         result["param_error"] = float(f"{error:.6g}")
     path = folder / "result.yaml"
