@@ -60,3 +60,48 @@ def _override_integrator(state: Any, spec: dict[str, Any], path: Path) -> None:
     for key, value in spec.items():
         if key != "type":
             props[key] = value
+
+
+RIG_KEY = "torchir_sensor_{}"  # the scene-dict / root-property names of the sensors given as ``sensors=``
+
+
+def _check_sensors(sensors: Any) -> list[Any]:
+    """``sensors=`` of the scene loaders as a non-empty list of sensor dicts or ``mi.Sensor`` objects."""
+    if isinstance(sensors, (Mapping, mi.Object)) or not isinstance(sensors, (list, tuple)) or not sensors:
+        raise TypeError(f"sensors must be a non-empty list of Mitsuba sensor dicts or mi.Sensor objects "
+                        f"(e.g. torchir.rigs.fibonacci(...)), got {type(sensors).__name__}")
+    for k, sensor in enumerate(sensors):
+        if isinstance(sensor, mi.Sensor):
+            continue
+        kind = sensor.get("type") if isinstance(sensor, Mapping) else None
+        if not isinstance(kind, str) or mi.PluginManager.instance().plugin_type(kind) != mi.ObjectType.Sensor:
+            raise TypeError(f"sensors[{k}] is not a Mitsuba sensor dict ({{'type': 'perspective', ...}}) or an mi.Sensor: got {sensor!r:.200}")
+    return list(sensors)
+
+
+def _is_sensor_entry(value: Any) -> bool:
+    if isinstance(value, mi.Sensor):
+        return True
+    kind = value.get("type") if isinstance(value, Mapping) else None
+    return isinstance(kind, str) and mi.PluginManager.instance().plugin_type(kind) == mi.ObjectType.Sensor
+
+
+def _replace_dict_sensors(scene_dict: Mapping[str, Any], sensors: list[Any]) -> dict[str, Any]:
+    """A copy of ``scene_dict`` whose top-level sensors are ``sensors`` (in their order)."""
+    out = {k: v for k, v in scene_dict.items() if not _is_sensor_entry(v)}
+    for k, sensor in enumerate(sensors):
+        key = RIG_KEY.format(k)
+        if key in out:
+            raise ValueError(f"the scene dict has an entry {key!r}, the name torchir gives the sensors of sensors=: rename it")
+        out[key] = sensor
+    return out
+
+
+def _replace_parsed_sensors(state: Any, sensors: list[Any]) -> None:
+    """Replace the sensors of a parsed scene file (``mi.parser`` state) by ``sensors``."""
+    root = state.root.props
+    for key in list(root.keys()):
+        if root.type(key) == mi.Properties.Type.ResolvedReference and state.nodes[root[key].index()].type == mi.ObjectType.Sensor:
+            del root[key]
+    for k, sensor in enumerate(sensors):
+        root[RIG_KEY.format(k)] = sensor if isinstance(sensor, mi.Sensor) else mi.load_dict(dict(sensor))

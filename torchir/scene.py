@@ -22,7 +22,7 @@ import math
 import os
 import warnings
 import weakref
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -32,8 +32,8 @@ import mitsuba as mi
 import torch
 
 from . import backend
-from ._scene_loading import (TextureStorage, _check_texture_storage, _float_bitmaps, _integrator_spec, _override_integrator,
-                             _resolving_from)
+from ._scene_loading import (TextureStorage, _check_sensors, _check_texture_storage, _float_bitmaps, _integrator_spec,
+                             _override_integrator, _replace_dict_sensors, _replace_parsed_sensors, _resolving_from)
 from ._scene_values import _is_flat_float, _is_transform, _is_vector_array, _same_layout, _torch_shape, _unbindable_hint
 from .welding import MeshWeld, group_normals, keep_loaded_welds, weld_of
 
@@ -97,7 +97,11 @@ def live_scenes() -> list[Scene]:
 class Scene:
     """A Mitsuba 3 scene that torch code renders and differentiates.
 
-    Build one with :meth:`builtin`, :meth:`from_file` or :meth:`from_dict`.
+    Build one with :meth:`builtin`, :meth:`from_file` or :meth:`from_dict`. Each takes
+    ``sensors=``: a list of Mitsuba sensor dicts (e.g. a :mod:`torchir.rigs` rig) or ``mi.Sensor``
+    objects that *replace* the scene's own sensors, in their order (sensor ``i`` is
+    ``sensors[i]``; an ``mi.Sensor`` given is the scene's own object, so ``render(...,
+    sensor=that_object)`` works).
 
     Example:
         >>> scene = Scene.builtin("cbox", resolution=32)
@@ -148,7 +152,7 @@ class Scene:
     @classmethod
     def builtin(
         cls, name: str, resolution: int | tuple[int, int] | None = None, override_integrator: Mapping[str, Any] | None = None,
-        **options: Any,
+        sensors: Sequence[Mapping[str, Any] | mi.Sensor] | None = None, **options: Any,
     ) -> Scene:
         """A built-in procedural scene (see :func:`torchir.scenes.available`).
 
@@ -156,6 +160,8 @@ class Scene:
             name: scene name, e.g. ``"cbox"``.
             resolution: ``H`` (square) or ``(H, W)``; each scene has a small default.
             override_integrator: ``{type: ..., **properties}`` replacing the scene's integrator.
+            sensors: sensor dicts or ``mi.Sensor`` objects replacing the scene's sensors
+                (``resolution`` then sizes only what the builder sizes besides its sensors).
             options: scene-specific options (documented on each scene's builder).
         """
         from . import scenes
@@ -163,6 +169,8 @@ class Scene:
         entry = scenes.get(name)
         backend.variant()
         scene_dict = entry.build(resolution=resolution, **options)
+        if sensors is not None:
+            scene_dict = _replace_dict_sensors(scene_dict, _check_sensors(sensors))
         if override_integrator is not None:
             scene_dict["integrator"] = _integrator_spec(override_integrator)
         derived = scene_dict.pop("torchir_derived", ())  # [(target, to_target, {name: value})]
@@ -175,7 +183,8 @@ class Scene:
     @classmethod
     def from_file(
         cls, path: str | os.PathLike, optimize: bool = False, texture_storage: TextureStorage = "float",
-        override_integrator: Mapping[str, Any] | None = None, **scene_args: Any,
+        override_integrator: Mapping[str, Any] | None = None, sensors: Sequence[Mapping[str, Any] | mi.Sensor] | None = None,
+        **scene_args: Any,
     ) -> Scene:
         """Load a Mitsuba 3 XML scene file.
 
@@ -187,6 +196,7 @@ class Scene:
                 ``format`` is stored as float32 linear values, so 8-bit PNG/JPEG and 16-bit
                 textures can be optimised (converted once, at load). ``"file"``: Mitsuba's
                 default (8-bit files stay ``TensorXu8``, 4x smaller, but cannot be bound).
+            sensors: sensor dicts or ``mi.Sensor`` objects replacing the file's sensors.
             scene_args: ``$name`` substitutions of the XML file.
         """
         path = Path(path)
@@ -194,6 +204,7 @@ class Scene:
             raise FileNotFoundError(f"scene file not found: {str(path)!r} (resolved to {path.resolve()})")
         _check_texture_storage(texture_storage)
         variant = backend.variant()
+        sensors = None if sensors is None else _check_sensors(sensors)
         parser = mi.parser
         config = parser.ParserConfig(variant)
         config.merge_meshes = config.merge_equivalent = optimize
@@ -206,16 +217,19 @@ class Scene:
                         node.props["format"] = "variant"
             if override_integrator is not None:
                 _override_integrator(state, _integrator_spec(override_integrator), path)
+            if sensors is not None:
+                _replace_parsed_sensors(state, sensors)
             mi_scene = parser.instantiate(config, state)
         return cls(mi_scene, name=path.stem)
 
     @classmethod
     def from_dict(
         cls, scene_dict: Mapping[str, Any], optimize: bool = False, texture_storage: TextureStorage = "float",
-        override_integrator: Mapping[str, Any] | None = None,
+        override_integrator: Mapping[str, Any] | None = None, sensors: Sequence[Mapping[str, Any] | mi.Sensor] | None = None,
     ) -> Scene:
         """Load a Mitsuba 3 scene dictionary (``{"type": "scene", ...}``); ``texture_storage`` and
-        ``override_integrator`` as in :meth:`from_file`."""
+        ``override_integrator`` as in :meth:`from_file`; ``sensors`` (dicts or ``mi.Sensor``
+        objects) replace the dict's top-level sensors."""
         if not isinstance(scene_dict, Mapping) or scene_dict.get("type") != "scene":
             raise ValueError("expected a Mitsuba scene dict with 'type': 'scene'")
         _check_texture_storage(texture_storage)
@@ -223,6 +237,8 @@ class Scene:
         if texture_storage == "float":
             scene_dict = _float_bitmaps(scene_dict)
         scene_dict = dict(scene_dict)
+        if sensors is not None:
+            scene_dict = _replace_dict_sensors(scene_dict, _check_sensors(sensors))
         if override_integrator is not None:  # the dict's "integrator" entry (Mitsuba's convention)
             scene_dict["integrator"] = _integrator_spec(override_integrator)
         return cls(mi.load_dict(scene_dict, optimize=optimize))
@@ -249,6 +265,24 @@ class Scene:
         if not 0 <= index < self.sensor_count:
             raise IndexError(f"sensor {index} out of range: the scene has {self.sensor_count} sensor(s)")
         return self.mi_scene.sensors()[index]
+
+    def sensor_index(self, sensor: int | mi.Sensor) -> int:
+        """The index of ``sensor``: an int index (range-checked) or one of this scene's own
+        ``mi.Sensor`` objects. A sensor object the scene was not loaded with is an error that
+        says how to add it (``sensors=`` of the loaders)."""
+        if not isinstance(sensor, mi.Sensor):
+            if isinstance(sensor, bool) or not isinstance(sensor, int):
+                raise TypeError(f"sensor must be an int index or one of the scene's mi.Sensor objects, got {type(sensor).__name__}")
+            self.sensor(sensor)
+            return sensor
+        for index, own in enumerate(self.mi_scene.sensors()):
+            if own is sensor:
+                return index
+        raise ValueError(
+            f"this mi.Sensor is not one of the scene's {self.sensor_count} sensor(s): a torchir render uses the "
+            f"scene's own sensors. Load the scene with it, e.g. Scene.from_dict(d, sensors=sensors) (also "
+            f"Scene.from_file(path, sensors=...) and Scene.builtin(name, sensors=...)), then pass it or its index"
+        )
 
     @property
     def integrator(self) -> mi.Integrator:

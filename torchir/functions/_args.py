@@ -23,12 +23,14 @@ class RenderSettings:
     seed_grad: int
 
 
-def render_settings(scene: Scene, sensor: int, spp: object, seed: object, spp_grad: object | None, seed_grad: object | None) -> RenderSettings:
-    """Check the arguments every render Function takes; ``spp_grad`` defaults to ``spp``."""
+def render_settings(scene: Scene, sensor: int | mi.Sensor, spp: object, seed: object, spp_grad: object | None,
+                    seed_grad: object | None) -> RenderSettings:
+    """Check the arguments every render Function takes; ``spp_grad`` defaults to ``spp``; a
+    ``sensor`` given as one of the scene's ``mi.Sensor`` objects becomes its index."""
     spp = check_count("spp", spp)
     spp_grad = spp if spp_grad is None else check_count("spp_grad", spp_grad)
     seed, seed_grad = seeds(seed, seed_grad)
-    scene.sensor(sensor)
+    sensor = scene.sensor_index(sensor)
     return RenderSettings(sensor=sensor, spp=spp, seed=seed, spp_grad=spp_grad, seed_grad=seed_grad)
 
 

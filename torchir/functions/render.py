@@ -53,7 +53,7 @@ def render(
     params: Mapping[str, torch.Tensor] | None = None,
     spp: int = 4,
     seed: int = 0,
-    sensor: int = 0,
+    sensor: int | mi.Sensor = 0,
     spp_grad: int | None = None,
     seed_grad: int | None = None,
     sampler: object | None = None,
@@ -72,7 +72,9 @@ def render(
             (a texture is ``(H, W, C)``).
         spp: samples per pixel of the primal image, >= 1.
         seed: seed of the primal image; a fresh seed per step gives independent images.
-        sensor: index of the sensor to render from.
+        sensor: the sensor to render from: its index, or one of the scene's own ``mi.Sensor``
+            objects (a sensor the scene was not loaded with is an error: load it with
+            ``Scene.from_dict(d, sensors=sensors)``).
         spp_grad: samples per pixel of the gradient pass (default: ``spp``).
         seed_grad: seed of the gradient pass (default: a hash of ``seed``; must differ from it,
             so that the gradient is independent of the image noise).

@@ -270,7 +270,7 @@ def render_pixels(
     index: torch.Tensor,
     spp: int = 1,
     seed: int = 0,
-    sensor: int | Sequence[int] = 0,
+    sensor: int | mi.Sensor | Sequence[int | mi.Sensor] = 0,
     spp_grad: int | None = None,
     seed_grad: int | None = None,
 ) -> torch.Tensor:
@@ -286,8 +286,9 @@ def render_pixels(
         index: ``(N,)`` integer tensor of flat pixel indices ``y * W + x``; with a list of
             sensors, ``k * H * W + y * W + x`` for pixel ``(x, y)`` of ``sensor[k]``.
         spp: paths per listed pixel, >= 1.
-        sensor: a sensor index, or a list of sensors of one resolution whose pixels are traced
-            in one wavefront (a multi-view pixel batch in one pass instead of one per view).
+        sensor: a sensor (its index or one of the scene's ``mi.Sensor`` objects, as for
+            :func:`render`), or a list of sensors of one resolution whose pixels are traced in
+            one wavefront (a multi-view pixel batch in one pass instead of one per view).
         seed, seed_grad, spp_grad: as for :func:`render`.
 
     Returns:
@@ -311,7 +312,8 @@ def render_pixels(
 
 
 def _check_sensors(scene: Scene, sensor: object) -> tuple[int, ...]:
-    """``sensor`` as a non-empty tuple of valid sensor indices of one resolution."""
+    """``sensor`` (indices or the scene's ``mi.Sensor`` objects) as a non-empty tuple of valid
+    sensor indices of one resolution."""
     if isinstance(sensor, (list, tuple)):
         if not sensor:
             raise ValueError("sensor must be a sensor index or a non-empty list of them, got []")
@@ -319,9 +321,9 @@ def _check_sensors(scene: Scene, sensor: object) -> tuple[int, ...]:
     else:
         sensors = (sensor,)
     for k in sensors:
-        if isinstance(k, bool) or not isinstance(k, int):
-            raise TypeError(f"sensor must be an int or a list of ints, got {sensor!r}")
-        scene.sensor(k)  # range check, with the scene's own message
+        if isinstance(k, bool) or not isinstance(k, (int, mi.Sensor)):
+            raise TypeError(f"sensor must be an int, an mi.Sensor of the scene or a list of them, got {sensor!r}")
+    sensors = tuple(scene.sensor_index(k) for k in sensors)  # range check / membership, with the scene's own message
     sizes = {scene.sensor_resolution(k) for k in sensors}
     if len(sizes) > 1:
         raise ValueError(f"sensors {list(sensors)} differ in resolution ({sorted(sizes)}): one wavefront needs one film size")

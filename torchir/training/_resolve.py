@@ -13,17 +13,26 @@ from .parameters import ParameterConfig
 __all__: list[str] = []
 
 
-def _load_scene(scene: str, resolution, scene_options: dict[str, Any], integrator: Optional[dict[str, Any]]) -> Scene:
+def _load_scene(scene: str, resolution, scene_options: dict[str, Any], integrator: Optional[dict[str, Any]],
+                sensors: Optional[dict[str, Any]] = None) -> Scene:
+    """The run's scene; ``sensors`` (``model.sensors``, a :func:`torchir.rigs.from_spec` mapping)
+    replaces its sensors, with ``resolution`` (``model.resolution``) as the rig's film size."""
+    rig = None
+    if sensors is not None:
+        from ..rigs import from_spec
+
+        rig = from_spec(sensors, resolution)
     if scene.endswith(".xml"):
-        if resolution is not None:
-            raise ValueError("resolution applies to built-in scenes; set the film size in the XML file instead")
-        return Scene.from_file(scene, override_integrator=integrator, **scene_options)
+        if resolution is not None and rig is None:
+            raise ValueError("resolution applies to built-in scenes and to model.sensors; set the film size in the XML file instead")
+        return Scene.from_file(scene, override_integrator=integrator, sensors=rig, **scene_options)
     if ":" in scene:  # a Python factory, as Mitsuba's tutorials build scenes: "file.py:fn" or "module:fn"
-        return _scene_from_factory(scene, resolution, scene_options, integrator)
-    return Scene.builtin(scene, resolution=resolution, override_integrator=integrator, **scene_options)
+        return _scene_from_factory(scene, resolution, scene_options, integrator, rig)
+    return Scene.builtin(scene, resolution=resolution, override_integrator=integrator, sensors=rig, **scene_options)
 
 
-def _scene_from_factory(spec: str, resolution, scene_options: dict[str, Any], integrator: Optional[dict[str, Any]]) -> Scene:
+def _scene_from_factory(spec: str, resolution, scene_options: dict[str, Any], integrator: Optional[dict[str, Any]],
+                        sensors: Optional[list[Any]] = None) -> Scene:
     """``factory(**scene_options)`` (plus ``resolution=`` when given) -> a Mitsuba scene dict."""
     from ..derived import load_callable
 
@@ -41,7 +50,7 @@ def _scene_from_factory(spec: str, resolution, scene_options: dict[str, Any], in
     if not isinstance(scene_dict, dict) or scene_dict.get("type") != "scene":
         raise ValueError(f"model.scene {spec!r} must return a Mitsuba scene dict ({{'type': 'scene', ...}}), "
                          f"got {type(scene_dict).__name__}")
-    return Scene.from_dict(scene_dict, override_integrator=integrator)
+    return Scene.from_dict(scene_dict, override_integrator=integrator, sensors=sensors)
 
 
 def _as_config(key: str, config: Any) -> ParameterConfig:

@@ -44,11 +44,15 @@ class InverseRenderingModule(pl.LightningModule):
         scene: a built-in scene name (``torchir.scenes.available()``), a Mitsuba ``.xml`` path, or
             a Python factory ``"file.py:function"`` / ``"package.module:function"`` returning a
             Mitsuba scene dict, called with ``scene_options`` (and ``resolution=`` when given).
-        resolution: film size of a built-in scene, ``H`` or ``[H, W]``.
+        resolution: film size of a built-in scene, ``H`` or ``[H, W]``, and of ``sensors``' rig.
         scene_options: builder options of a built-in scene, or ``$``-substitutions of an XML file.
         integrator: ``{type: name, **properties}`` replacing the scene's integrator, so that a run
             uses the cheapest one its parameters need (e.g. ``{type: prb_projective, guiding:
             none, max_depth: 3}`` for a pose) without editing the scene file.
+        sensors: a sensor rig replacing the scene's sensors, ``{type: fibonacci | orbit | look_at,
+            **arguments of that function of torchir.rigs}`` (e.g. ``{type: fibonacci, count: 8,
+            distance: 5, fov: 45, resolution: 96}``, Mitsuba's shape tutorial); its resolution
+            may come from ``resolution`` instead (giving both, they must agree).
         derived: ``{label: {type: rigid | function, ...}}``: derived parameters declared on the
             scene before ``parameters`` are read (see :mod:`torchir.derived`), e.g. a shape's
             pose ``{type: rigid, shape: bunny}`` giving ``bunny.translation``/``.rotation``/``.scale``.
@@ -92,6 +96,7 @@ class InverseRenderingModule(pl.LightningModule):
         resolution: Optional[Union[int, tuple[int, int]]] = None,
         scene_options: Optional[dict[str, Any]] = None,
         integrator: Optional[dict[str, Any]] = None,
+        sensors: Optional[dict[str, Any]] = None,
         derived: Optional[dict[str, dict[str, Any]]] = None,
         parameters: Optional[dict[str, ParameterConfig]] = None,
         loss: Union[str, nn.Module, dict[str, Any]] = "l2",
@@ -120,7 +125,7 @@ class InverseRenderingModule(pl.LightningModule):
             raise ValueError(f"model.distance_every_n_steps must be a number of steps >= 1, got {distance_every_n_steps!r}")
         if lr_half_life is not None and (isinstance(lr_half_life, bool) or not isinstance(lr_half_life, int) or lr_half_life < 1):
             raise ValueError(f"model.lr_half_life must be a number of steps >= 1 (or null), got {lr_half_life!r}")
-        self.scene = _load_scene(scene, resolution, dict(scene_options or {}), integrator)
+        self.scene = _load_scene(scene, resolution, dict(scene_options or {}), integrator, sensors)
         for label, spec in (derived or {}).items():
             declare_derived(self.scene, label, spec)
         if parameters is None:
