@@ -1,12 +1,15 @@
 """ViewDataModule: the target images, one per sensor, served as batches of views."""
 from __future__ import annotations
 
+import itertools
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Optional, Union
 
 import lightning.pytorch as pl
 import torch
 from torch.utils.data import DataLoader, Dataset
+from torch.utils.data.distributed import DistributedSampler
 
 from .. import backend
 from ..functions import render
@@ -192,14 +195,59 @@ class ViewDataModule(pl.LightningDataModule):
         if per_step % world:
             raise ValueError(f"data.views_per_step ({per_step}) must be divisible by the number of processes ({world})")
         dataset = ViewDataset(self.views, self.targets, self.lossy or None, self.chroma or None, self.quantisation or None)
-        sampler = None
-        if world > 1:
-            # Each view stays with one process (its rank: position mod world). Lightning's own
-            # sampler reshuffles the training views over the processes every epoch, so a view's
-            # ReSTIR chain or carried-over store was split between processes (every process burnt
-            # in every view); with this one the processes' batches of a step together are the
-            # single process's batch.
-            from torch.utils.data.distributed import DistributedSampler
+        rank = self.trainer.global_rank if world > 1 else 0
+        return _view_loader(dataset, per_step, world, rank)
 
-            sampler = DistributedSampler(dataset, num_replicas=world, rank=self.trainer.global_rank, shuffle=False)
-        return DataLoader(dataset, batch_size=per_step // world, shuffle=False, sampler=sampler, num_workers=0)
+
+class _ViewOrder(DistributedSampler):
+    """This process's views in epoch order, from the ``start``-th on (set by a resume).
+
+    Each view stays with one process (its rank: position mod world). Lightning's own sampler
+    reshuffles the training views over the processes every epoch, so a view's ReSTIR chain or
+    carried-over store was split between processes (every process burnt in every view); with
+    this one the processes' batches of a step together are the single process's batch. Being a
+    ``DistributedSampler``, Lightning leaves it in place under DDP."""
+
+    def __init__(self, dataset: ViewDataset, world: int, rank: int) -> None:
+        super().__init__(dataset, num_replicas=world, rank=rank, shuffle=False)
+        self.start = 0
+
+    def __iter__(self) -> Iterator[int]:
+        return itertools.islice(super().__iter__(), self.start, None)
+
+
+class _ResumableViewLoader(DataLoader):
+    """A DataLoader that Lightning can resume mid-epoch (its ``_Stateful`` protocol: the fit loop
+    saves :meth:`state_dict` in checkpoints and calls :meth:`load_state_dict` before the resumed
+    epoch's first ``iter``). The state is the number of batches this epoch has served: resumed
+    after batch ``k`` the epoch goes on with batch ``k + 1`` of the same order (a plain
+    DataLoader restarts the epoch's order, and Lightning, counting the batches already done,
+    ends that epoch early). Every process serves its batches in lockstep, so the state that
+    process 0 checkpoints is every process's."""
+
+    _served = 0  # batches of the current pass handed out
+    _resume_at = 0  # batches the next pass skips (from a loaded state)
+
+    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+        start, self._resume_at = self._resume_at, 0
+        self.sampler.start = start * self.batch_size  # consecutive indices make a batch: skip whole batches
+        self._served = start
+        return self._count(super().__iter__())
+
+    def _count(self, batches: Iterator[dict[str, torch.Tensor]]) -> Iterator[dict[str, torch.Tensor]]:
+        for batch in batches:
+            self._served += 1
+            yield batch
+
+    def state_dict(self) -> dict[str, int]:
+        return {"batches_served": self._served}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        served = int(state["batches_served"])
+        self._resume_at = served if served < len(self) else 0  # an epoch that was over: the next starts whole
+
+
+def _view_loader(dataset: ViewDataset, per_step: int, world: int, rank: int) -> _ResumableViewLoader:
+    """Process ``rank``'s loader: ``per_step // world`` of its views a batch, in a fixed order."""
+    return _ResumableViewLoader(dataset, batch_size=per_step // world, shuffle=False,
+                                sampler=_ViewOrder(dataset, world, rank), num_workers=0)
