@@ -8,8 +8,10 @@ weights 1/N, a saturated LOI term has zero gradient, ...), the case's ``check`` 
 case in CI; ``torchir bench`` lists the matrix and its outcomes in its report.
 
 Example:
-    >>> from torchir.extremes import run
-    >>> rows = run()            # [(piece, condition, expected, outcome, ok), ...]
+    >>> from torchir.extremes import CASES, run
+    >>> rows = run(CASES[:2])   # run() runs them all: [(piece, condition, expected, outcome, ok), ...]
+    >>> [ok for *_, ok in rows]
+    [True, True]
 """
 from __future__ import annotations
 
