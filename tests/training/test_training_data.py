@@ -248,6 +248,21 @@ def test_setup_files(tmp_path, fake_render):
     assert torch.allclose(dm.targets[1], torch.full((3, 2, 3), 2.0))
 
 
+def test_setup_pairs_files_with_views_in_the_listed_order(tmp_path, fake_render):
+    """``targets[i]`` is the target of ``views[i]``, whatever the files' names: names that sort the
+    other way from the list (as a photographer's ``front``/``back`` do) keep their listed views,
+    and so does a view order that is not sorted."""
+    front = write_image(tmp_path / "z_front.exr", image(value=0.25))
+    back = write_image(tmp_path / "a_back.exr", image(value=4.0))
+    side = write_image(tmp_path / "m_side.exr", image(value=1.0))
+    dm = ViewDataModule(targets=[str(front), str(back), str(side)], views=[0, 2, 1])
+    attach(dm, FakeScene(sensors=3))
+    dm.setup("fit")
+    assert [float(t.mean()) for t in dm.targets] == [0.25, 4.0, 1.0]
+    items = ViewDataset(dm.views, dm.targets)
+    assert [(int(items[i]["view"]), float(items[i]["target"].mean())) for i in range(3)] == [(0, 0.25), (2, 4.0), (1, 1.0)]
+
+
 def test_setup_files_lossy_flags_reach_the_batch(tmp_path, fake_render):
     """Each view's batch item says whether its file is a JPEG (the trainer's clipped-pixel
     mask grows for those); synthetic targets are not lossy."""
