@@ -45,9 +45,10 @@ if torchir.backend.device() != "cpu":
 # before this stable sort, so the other files, and the tests inside every file, run in a new order
 # each run (``--randomly-seed=N`` repeats an order; ``-p no:randomly`` keeps the files' own).
 LONGEST_FILES_FIRST = (
-    "test_restir.py", "test_restir_integrator.py", "test_mesh_gradients.py", "test_shape_gradients.py", "test_extremes.py",
-    "test_primary_forms.py", "test_restir_grad_paths.py", "test_training.py", "test_photo_to_answer.py",
-    "test_functions_pixels.py", "test_training_techniques.py", "test_silhouettes.py", "test_training_ddp.py",
+    "test_training_techniques.py", "test_restir.py", "test_shape_terms_fd.py", "test_training.py", "test_functions_pixels.py",
+    "test_shape_gradients.py", "test_primary_forms.py", "test_restir_integrator.py", "test_mesh_gradients.py",
+    "test_photo_to_answer.py", "test_shading_bands.py", "test_extremes.py", "test_bench_adaptive.py", "test_readme_commands.py",
+    "test_training_ddp.py", "test_tune.py", "test_restir_grad_paths.py", "test_silhouettes.py",
 )
 SHARED_SCOPES = ("session", "package", "module", "class")
 _LITERAL = re.compile(r"\b(half|float|double|i1|i8|i16|i32|i64) (-?0x[0-9A-Fa-f]+|-?[0-9][0-9.e+-]*)")
