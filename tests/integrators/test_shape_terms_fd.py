@@ -263,7 +263,7 @@ class FourWedges:
                         moved = {self.keys[term]: self.v0[term] + t[k] * self.direction[term] for k, term in enumerate(TERMS)}
                         image = render(scene, moved, spp=1, spp_grad=self.size.spp, seed=100 + 1000 * c + i, sampler=sampler)
                         (image * self.total_adjoint).sum().backward()
-                        out[c, i] = t.grad.numpy()
+                        out[c, i] = t.grad.cpu().numpy()
             self._runs[name] = out
         return self._runs[name]
 
