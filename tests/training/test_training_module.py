@@ -237,7 +237,7 @@ def test_scene_loading_passes_name_resolution_options_and_integrator(monkeypatch
     ]
     with pytest.raises(ValueError) as error:
         make(scene="room.xml", resolution=8)
-    assert str(error.value) == "resolution applies to built-in scenes; set the film size in the XML file instead"
+    assert str(error.value) == "resolution applies to built-in scenes and to model.sensors; set the film size in the XML file instead"
     with pytest.raises(ValueError) as error:
         make(scene="room.xml", resolution=None, parameters=None)
     assert str(error.value) == "model.parameters is required for scenes loaded from files"

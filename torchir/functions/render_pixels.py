@@ -322,7 +322,7 @@ def _check_sensors(scene: Scene, sensor: object) -> tuple[int, ...]:
         sensors = (sensor,)
     for k in sensors:
         if isinstance(k, bool) or not isinstance(k, (int, mi.Sensor)):
-            raise TypeError(f"sensor must be an int, an mi.Sensor of the scene or a list of them, got {sensor!r}")
+            raise TypeError(f"sensor must be an int, an mi.Sensor of the scene or a list of ints / sensors, got {sensor!r}")
     sensors = tuple(scene.sensor_index(k) for k in sensors)  # range check / membership, with the scene's own message
     sizes = {scene.sensor_resolution(k) for k in sensors}
     if len(sizes) > 1:

@@ -25,10 +25,15 @@ def _load_scene(scene: str, resolution, scene_options: dict[str, Any], integrato
     if scene.endswith(".xml"):
         if resolution is not None and rig is None:
             raise ValueError("resolution applies to built-in scenes and to model.sensors; set the film size in the XML file instead")
-        return Scene.from_file(scene, override_integrator=integrator, sensors=rig, **scene_options)
+        return Scene.from_file(scene, override_integrator=integrator, **_rig(rig), **scene_options)
     if ":" in scene:  # a Python factory, as Mitsuba's tutorials build scenes: "file.py:fn" or "module:fn"
         return _scene_from_factory(scene, resolution, scene_options, integrator, rig)
-    return Scene.builtin(scene, resolution=resolution, override_integrator=integrator, sensors=rig, **scene_options)
+    return Scene.builtin(scene, resolution=resolution, override_integrator=integrator, **_rig(rig), **scene_options)
+
+
+def _rig(rig: Optional[list[Any]]) -> dict[str, Any]:
+    """The loaders' ``sensors=`` argument, only where a rig replaces the scene's sensors."""
+    return {} if rig is None else {"sensors": rig}
 
 
 def _scene_from_factory(spec: str, resolution, scene_options: dict[str, Any], integrator: Optional[dict[str, Any]],

@@ -200,7 +200,8 @@ class ViewDataModule(pl.LightningDataModule):
 
 
 class _ViewOrder(DistributedSampler):
-    """This process's views in epoch order, from the ``start``-th on (set by a resume).
+    """This process's views in epoch order, in batches of ``batch_size``, from batch ``start`` on
+    (set by a resume); ``served`` counts the batches of the current pass handed out.
 
     Each view stays with one process (its rank: position mod world). Lightning's own sampler
     reshuffles the training views over the processes every epoch, so a view's ReSTIR chain or
@@ -208,12 +209,18 @@ class _ViewOrder(DistributedSampler):
     this one the processes' batches of a step together are the single process's batch. Being a
     ``DistributedSampler``, Lightning leaves it in place under DDP."""
 
-    def __init__(self, dataset: ViewDataset, world: int, rank: int) -> None:
+    def __init__(self, dataset: ViewDataset, world: int, rank: int, batch_size: int) -> None:
         super().__init__(dataset, num_replicas=world, rank=rank, shuffle=False)
-        self.start = 0
+        self.batch_size, self.start, self.served = batch_size, 0, 0
 
     def __iter__(self) -> Iterator[int]:
-        return itertools.islice(super().__iter__(), self.start, None)
+        start, self.start = self.start, 0
+        self.served = start
+        # consecutive indices make a batch: skip whole batches, count a batch at its first index
+        for k, index in enumerate(itertools.islice(super().__iter__(), start * self.batch_size, None)):
+            if k % self.batch_size == 0:
+                self.served += 1
+            yield index
 
 
 class _ResumableViewLoader(DataLoader):
@@ -223,31 +230,18 @@ class _ResumableViewLoader(DataLoader):
     after batch ``k`` the epoch goes on with batch ``k + 1`` of the same order (a plain
     DataLoader restarts the epoch's order, and Lightning, counting the batches already done,
     ends that epoch early). Every process serves its batches in lockstep, so the state that
-    process 0 checkpoints is every process's."""
-
-    _served = 0  # batches of the current pass handed out
-    _resume_at = 0  # batches the next pass skips (from a loaded state)
-
-    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
-        start, self._resume_at = self._resume_at, 0
-        self.sampler.start = start * self.batch_size  # consecutive indices make a batch: skip whole batches
-        self._served = start
-        return self._count(super().__iter__())
-
-    def _count(self, batches: Iterator[dict[str, torch.Tensor]]) -> Iterator[dict[str, torch.Tensor]]:
-        for batch in batches:
-            self._served += 1
-            yield batch
+    process 0 checkpoints is every process's. The counting lives in the sampler: an ``__iter__``
+    here would put torchir's frame under the DataLoader's own host tensors (its base seed)."""
 
     def state_dict(self) -> dict[str, int]:
-        return {"batches_served": self._served}
+        return {"batches_served": self.sampler.served}
 
     def load_state_dict(self, state: dict[str, int]) -> None:
         served = int(state["batches_served"])
-        self._resume_at = served if served < len(self) else 0  # an epoch that was over: the next starts whole
+        self.sampler.start = served if served < len(self) else 0  # an epoch that was over: the next starts whole
 
 
 def _view_loader(dataset: ViewDataset, per_step: int, world: int, rank: int) -> _ResumableViewLoader:
     """Process ``rank``'s loader: ``per_step // world`` of its views a batch, in a fixed order."""
     return _ResumableViewLoader(dataset, batch_size=per_step // world, shuffle=False,
-                                sampler=_ViewOrder(dataset, world, rank), num_workers=0)
+                                sampler=_ViewOrder(dataset, world, rank, per_step // world), num_workers=0)
