@@ -27,6 +27,7 @@ from typing import Any, Optional, Union
 
 import torch
 
+from ._specs import split_typed
 from .scene import Scene
 
 __all__ = ["rigid_transform", "from_function", "declare", "rotation_matrix", "load_callable"]
@@ -181,12 +182,7 @@ _KINDS = {"rigid": rigid_transform, "function": from_function}
 
 def declare(scene: Scene, label: str, spec: Mapping[str, Any], base_dir: Optional[Path] = None) -> list[str]:
     """Declare one ``model.derived`` entry ``{type: rigid | function, ...options}``; returns the names."""
-    if not isinstance(spec, Mapping):
-        raise TypeError(f"model.derived[{label!r}] must be a mapping {{type: rigid | function, ...}}, got {spec!r}")
-    options = dict(spec)
-    kind = options.pop("type", None)
-    if kind not in _KINDS:
-        raise ValueError(f"model.derived[{label!r}].type must be one of {sorted(_KINDS)}, got {kind!r}")
+    kind, options = split_typed(spec, _KINDS, f"model.derived[{label!r}]", "{type: rigid | function, ...}", not_mapping=TypeError)
     try:
         if kind == "rigid":
             options.setdefault("name", label)

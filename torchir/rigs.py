@@ -32,6 +32,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import backend
+from ._specs import split_typed
 
 __all__ = ["fibonacci", "orbit", "look_at", "from_spec", "RIGS"]
 
@@ -128,12 +129,7 @@ def from_spec(spec: Mapping[str, Any], resolution: Resolution | None = None, whe
     """The sensors of a ``{type: fibonacci | orbit | look_at, **arguments}`` mapping (YAML's
     ``model.sensors``); ``resolution`` is used when the spec gives none, and must agree with it
     when it does. Unknown types, unknown or missing arguments: a ``ValueError`` naming them."""
-    if not isinstance(spec, Mapping):
-        raise ValueError(f"{where} must be a mapping {{type: {' | '.join(RIGS)}, ...}}, got {spec!r}")
-    options = dict(spec)
-    kind = options.pop("type", None)
-    if kind not in RIGS:
-        raise ValueError(f"{where}.type must be one of {sorted(RIGS)}, got {kind!r}")
+    kind, options = split_typed(spec, RIGS, where, f"{{type: {' | '.join(RIGS)}, ...}}")
     if resolution is not None:
         if "resolution" in options and _hw(options["resolution"]) != _hw(resolution):
             raise ValueError(f"model.resolution ({resolution}) and {where}.resolution ({options['resolution']}) differ: give one")

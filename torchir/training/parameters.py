@@ -25,6 +25,8 @@ from typing import Any, Literal, Optional, Union
 import torch
 from torch import nn
 
+from .._specs import split_typed
+
 __all__ = ["ParameterConfig", "SceneParameter", "LargeStepsParameter", "PARAMETRIZATIONS", "large_steps_lambda"]
 
 PARAMETRIZATIONS = ("large_steps",)  # the types of ParameterConfig.parametrization
@@ -80,12 +82,7 @@ def large_steps_lambda(key: str, spec: Any) -> float:
     from ..geometry.largesteps import DEFAULT_LAMBDA
 
     where = f"parameters[{key!r}].parametrization"
-    if not isinstance(spec, dict):
-        raise ValueError(f"{where} must be a mapping {{type: large_steps, lambda: λ}}, got {spec!r}")
-    options = dict(spec)
-    kind = options.pop("type", None)
-    if kind not in PARAMETRIZATIONS:
-        raise ValueError(f"{where}.type must be one of {list(PARAMETRIZATIONS)}, got {kind!r}")
+    kind, options = split_typed(spec, PARAMETRIZATIONS, where, "{type: large_steps, lambda: λ}", mapping=dict)
     lambda_ = options.pop("lambda", DEFAULT_LAMBDA)
     if options:
         raise ValueError(f"{where} ({kind}) has unknown option(s) {sorted(options)}; allowed: ['lambda']")
