@@ -150,6 +150,30 @@ def test_direct_projective_on_a_smooth_mesh_warns_that_it_misses_the_band(sphere
         render(scene, {KEY: v}, spp=1, seed=0)
 
 
+@pytest.mark.parametrize("change", ["constant_light", "gaussian_filter"])
+def test_band_warning_advises_what_works_for_the_scene(sphere, change):
+    """Where ReSTIR refuses the scene (an environment light, as Mitsuba's shape tutorial has; a
+    gaussian filter), the warning says why and offers what applies, not the B.2 preset that
+    would then refuse the scene."""
+    from torchir.functions import render
+    from torchir.samplers import ReSTIRSampler
+
+    spec = scene_dict(sphere.spec, {"type": "direct_projective", "guiding": "none"}, RES)
+    if change == "constant_light":
+        spec["light"] = {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}}
+    else:
+        spec["sensor"]["film"]["rfilter"] = {"type": "gaussian"}
+    scene = torchir.Scene.from_dict(spec)
+    with pytest.raises(ValueError):
+        ReSTIRSampler(scene, preset="b2")  # the advice the plain scene gets would fail here
+    v = scene.get(KEY).requires_grad_(True)
+    reason = "environment emitters" if change == "constant_light" else "box reconstruction filter"
+    with pytest.warns(UserWarning, match="shading-horizon band") as caught:
+        render(scene, {KEY: v}, spp=1, seed=0)
+    message = " ".join(str(w.message) for w in caught if "shading-horizon band" in str(w.message))
+    assert "preset='b2')) adds" not in message and reason in message and "large_steps" in message
+
+
 def test_restir_says_when_the_band_term_cannot_run(sphere):
     """A crop window (the term needs the whole film) leaves the term out: ReSTIR warns once."""
     from torchir.functions import render

@@ -137,9 +137,8 @@ def _check_projective_silhouettes(scene: Scene, grad_names: frozenset[str], sens
                     f"band-{shape.id()}",
                     f"{shape.id()!r} is smooth-shaded: {type(scene.integrator).__name__} misses the shading-horizon band "
                     f"inside its silhouettes, whose inner edge moves as the vertex normals turn, so a vertex beside a "
-                    f"silhouette gets a wrong derivative (measured on a coarse UV sphere: -2.11 against -0.23 by finite "
-                    f"differences; translations are right). render(..., sampler=torchir.samplers.ReSTIRSampler(scene, "
-                    f"preset='b2')) adds that term (box filter, pinhole camera).",
+                    f"silhouette gets a wrong derivative (translations are right; docs/shape-gradients.md, \"Smooth-shaded "
+                    f"meshes\"). {_band_advice(scene, shape, sensor)}",
                 )
             if _REFUSED[key]:
                 raise ValueError(
@@ -148,6 +147,26 @@ def _check_projective_silhouettes(scene: Scene, grad_names: frozenset[str], sens
                     f"samples these silhouettes itself), or give the mesh smooth vertex normals, a two-sided material "
                     f"('twosided' BSDF) or a closed surface."
                 )
+
+
+def _band_advice(scene: Scene, mesh: mi.Mesh, sensor: int) -> str:
+    """What removes the shading-horizon band's error for this scene: ReSTIR's B.2 preset where
+    ReSTIR and its band term take the scene, else why not and what is left to do."""
+    from ..integrators._silhouettes import supported
+    from ..integrators.restir_di import check_scene
+
+    try:
+        check_scene(scene.mi_scene)
+    except ValueError as refusal:
+        reason = str(refusal)
+    else:
+        if supported(scene.mi_scene, scene.mi_scene.sensors()[sensor], [mesh]):
+            return "render(..., sampler=torchir.samplers.ReSTIRSampler(scene, preset='b2')) adds that term."
+        reason = "its band term needs a pinhole camera with a box filter and no crop window, seeing the mesh whole"
+    return (f"torchir's ReSTIR sampler, which adds that term, cannot take this scene ({reason}). The error is "
+            f"confined to the vertices beside silhouettes; Mitsuba's shape tutorial converges with it, because its Large "
+            f"Steps parametrization (torchir: parametrization: {{type: large_steps}}) spreads each vertex's step over "
+            f"its neighbours. warnings.filterwarnings('ignore', message='.*shading-horizon band') silences this warning.")
 
 
 def _smooth_and_seen(scene: Scene, mesh: mi.Mesh, sensor: int) -> bool:
