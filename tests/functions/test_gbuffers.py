@@ -33,6 +33,26 @@ def test_gbuffer_input_errors(painting):
         render_gbuffers(painting, sensor=3)
 
 
+def test_a_sensor_object_selects_its_view(tmp_path):
+    """``sensor=`` takes one of the scene's ``mi.Sensor`` objects, as ``render`` does (Mitsuba's
+    tutorials pass sensors): the G-buffers of sensor object k are those of index k, and a sensor
+    the scene was not loaded with is refused."""
+    import mitsuba as mi
+
+    import torchir
+    from torchir import rigs
+
+    sensors = rigs.orbit(count=2, distance=4.0, elevation=20.0, fov=40.0, resolution=8, filter="box")
+    scene = torchir.Scene.from_dict({"type": "scene", "ball": {"type": "sphere"}}, sensors=sensors)
+    own = scene.mi_scene.sensors()
+    for k in range(2):
+        assert torch.equal(render_gbuffers(scene, sensor=own[k], spp=1), render_gbuffers(scene, sensor=k, spp=1))
+    assert not torch.equal(render_gbuffers(scene, sensor=own[0], spp=1), render_gbuffers(scene, sensor=own[1], spp=1))
+    stranger = mi.load_dict(sensors[0])
+    with pytest.raises(ValueError, match="not one of the scene's"):
+        render_gbuffers(scene, sensor=stranger, spp=1)
+
+
 def test_denoised_render_backward_with_gbuffers(painting):
     """I1/I2: render -> denoisers -> L1 -> backward, with G-buffers rendered before the
     differentiable render or between it and its backward (the §5.5 pitfall): the gradient is

@@ -31,7 +31,7 @@ def render_gbuffers(
     params: Mapping[str, torch.Tensor] | None = None,
     spp: int = 4,
     seed: int = 0,
-    sensor: int = 0,
+    sensor: int | mi.Sensor = 0,
 ) -> torch.Tensor:
     """G-buffers of ``scene`` with ``params`` bound, through Mitsuba's ``aov`` integrator.
 
@@ -47,7 +47,7 @@ def render_gbuffers(
         params: ``{Mitsuba key: tensor}`` as for :func:`~torchir.functions.render` (optional).
         spp: samples per pixel (averaged: anti-aliased albedo, normal and depth).
         seed: sampler seed.
-        sensor: sensor index.
+        sensor: sensor index, or one of the scene's ``mi.Sensor`` objects (as :func:`~torchir.functions.render`).
 
     Returns:
         ``(7, H, W)`` float32: albedo RGB, shading normal XYZ (world space), depth (world units
@@ -63,7 +63,7 @@ def render_gbuffers(
     scene = _args.check_scene(scene)
     spp = _args.check_count("spp", spp)
     seed = _args.check_seed("seed", seed)
-    sensor_obj = scene.sensor(sensor)
+    sensor_obj = scene.sensor(scene.sensor_index(sensor))
     values, _ = _args.split_params(scene, params)
     with torch.no_grad(), dr.suspend_grad(), gc_paused():
         native = {name: scene.to_drjit(name, mi.TensorXf(t.detach().contiguous())) for name, t in values.items()}
