@@ -18,11 +18,11 @@ from . import backend, scenes
 from .scene import ParameterInfo, Scene
 
 __version__ = "0.1.0"
-__all__ = ["backend", "scenes", "Scene", "ParameterInfo", "functions", "testing", "derived", "rigs", "__version__"]
+__all__ = ["backend", "scenes", "Scene", "ParameterInfo", "functions", "testing", "derived", "rigs", "volumes", "__version__"]
 
 
 _LAZY = ("functions", "testing", "derived", "modules", "samplers", "imageio", "training", "welding", "extremes",
-         "integrators", "bench", "geometry", "rigs")
+         "integrators", "bench", "geometry", "rigs", "volumes")
 
 
 def __getattr__(name: str):

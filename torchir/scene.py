@@ -11,6 +11,10 @@ Mitsuba value                              torch shape           example
 ``Color3f``/``Point3f``/... of width n     ``(n, 3)``
 =========================================  ====================  ===========================
 
+A ``gridvolume``'s ``data`` (``(Z, Y, X, C)``) also binds at another resolution ``(Z', Y', X', C)``
+(:meth:`Scene.is_grid_volume_data`; :func:`torchir.volumes.resample` resizes one), for
+coarse-to-fine volume fits.
+
 A render binds the values it is given for its own duration; parameters it is not given keep
 the value the scene was loaded with. Binding is exact: the render Functions re-bind their
 own values before their backward pass, so interleaved renders differentiate correctly.
@@ -315,6 +319,16 @@ class Scene:
             )
         return self._info[name]
 
+    def is_grid_volume_data(self, name: str) -> bool:
+        """Whether Mitsuba key ``name`` is the ``data`` of a ``gridvolume`` (a ``(Z, Y, X, C)``
+        TensorXf): such a value binds at any positive resolution ``(Z', Y', X', C)`` with the
+        loaded channel count ``C`` (Mitsuba then renders the grid at that size; ``info(name).shape``
+        stays the loaded one). Every other key binds at its loaded shape only."""
+        if name in self.derived or not name.endswith(".data") or name not in self.params:
+            return False
+        node = self.params.properties[name][2]
+        return isinstance(node, mi.Volume) and node.class_name() == "GridVolume"
+
     def get(self, name: str) -> torch.Tensor:
         """A torch copy of parameter ``name`` as loaded (shape as in the module docstring), on the
         render device (:func:`torchir.backend.device`)."""
@@ -377,10 +391,13 @@ class Scene:
                     f"renders on {expected_device.type}: move it with .to({expected_device.type!r})"
                 )
             if not _same_layout(tuple(tensor.shape), info.shape):
-                hint = " (Mitsuba's (H, W, C) layout, not (C, H, W))" if len(info.shape) == 3 else ""
-                raise ValueError(
-                    f"params[{name!r}] has shape {tuple(tensor.shape)}, expected {info.shape}{hint}"
-                )
+                if self.is_grid_volume_data(name):
+                    _check_grid_shape(name, tuple(tensor.shape), info.shape)
+                else:
+                    hint = " (Mitsuba's (H, W, C) layout, not (C, H, W))" if len(info.shape) == 3 else ""
+                    raise ValueError(
+                        f"params[{name!r}] has shape {tuple(tensor.shape)}, expected {info.shape}{hint}"
+                    )
             if tensor.requires_grad and not info.differentiable and self._detaches(name):
                 raise ValueError(
                     f"parameter {name!r} is marked non-differentiable by Mitsuba (its integrators "
@@ -505,7 +522,11 @@ class Scene:
         if _is_transform(value):
             return type(value)(dr.unravel(mi.Matrix4f, tensor.array, order="C"))
         if dr.is_tensor_v(value):
-            return tensor if tuple(tensor.shape) == tuple(value.shape) else type(value)(tensor.array, value.shape)
+            if tuple(tensor.shape) == tuple(value.shape):
+                return tensor
+            if len(tensor.shape) == 4 and self.is_grid_volume_data(name):  # a grid of another resolution
+                return type(value)(tensor.array, tuple(tensor.shape))
+            return type(value)(tensor.array, value.shape)
         if _is_flat_float(value):
             return tensor.array
         return dr.unravel(type(value), tensor.array)
@@ -577,3 +598,14 @@ class Scene:
         """Mark ``owner``'s AD edges as consumed (a backward traversal clears them)."""
         if self._owner is owner:
             self._owner = None
+
+
+def _check_grid_shape(name: str, got: tuple[int, ...], loaded: tuple[int, ...]) -> None:
+    """Refuse a grid-volume value that is not ``(Z, Y, X, C)`` with positive sizes and the loaded ``C``."""
+    channels = loaded[-1]
+    if len(got) != 4 or got[-1] != channels or min(got) < 1:
+        raise ValueError(
+            f"params[{name!r}] has shape {got}, expected (Z, Y, X, {channels}): a gridvolume's data binds at any "
+            f"positive resolution (Z, Y, X) with the {channels} channel(s) it was loaded with (loaded as {loaded}, "
+            f"Mitsuba's (Z, Y, X, C) layout)"
+        )

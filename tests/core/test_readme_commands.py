@@ -51,6 +51,8 @@ ELSEWHERE = {  # command -> "module::test" that runs it (the module under tests/
     "torchir fit --config configs/examples/mesh_from_sphere.yaml":
         "training/test_mesh_fit::test_the_recovered_mesh_is_written_as_positions_and_gets_closer_to_the_truth",
     "python3 configs/examples/mesh_from_sphere.py": "training/test_mesh_fit::test_the_shipped_truth_mesh_is_the_factory_s_output",
+    "torchir fit --config configs/examples/volume_from_views.yaml":
+        "training/test_resolution::test_a_fit_through_a_resize_changes_the_latent_and_the_optimiser_state_at_the_step",
     "torchir tune configs/painting.yaml --quick":
         "training/test_tune::test_tune_command_writes_the_table_results_plot_and_a_tuned_config_that_loads",
 }

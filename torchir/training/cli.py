@@ -276,7 +276,7 @@ class TorchirCLI(LightningCLI):
 TORCHIR_HELP = """torchir's additions (the rest is LightningCLI's help, below):
   --set KEY.FIELD=VALUE   one field of one model.parameters entry, e.g.
                           --set 'red.reflectance.value.init=[0.3, 0.3, 0.3]' or --set red.reflectance.value.lr=0.05
-                          (FIELD: init, bounds, lr, transform, seed, truth, parametrization; repeat for more)
+                          (FIELD: init, bounds, lr, transform, seed, truth, parametrization, resolution; repeat for more)
   --model.parameters MAP  merged into the config's map field by field, e.g. --model.parameters '{KEY: {lr: 0.1}}'
   --ckpt_path last        resume from the newest run's checkpoints/last.ckpt (same logger save_dir/name)
   paths                   a config's relative paths are relative to the config file; paths typed here

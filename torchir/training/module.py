@@ -18,6 +18,7 @@ from ..derived import declare as declare_derived
 from ..imageio import clipped_mask
 from ..jpeg import CodecCorrection
 from ._resolve import _as_config, _from_checkpoint, _load_scene, _resolve_denoiser, _resolve_loss, _resolve_sampler, _to_checkpoint
+from . import resolution as coarse_to_fine
 from .parameters import LargeStepsParameter, ParameterConfig, SceneParameter, is_mesh_file, large_steps_lambda, resolve_value
 
 __all__ = ["InverseRenderingModule", "NonFiniteLossError"]
@@ -140,6 +141,7 @@ class InverseRenderingModule(pl.LightningModule):
         self.keys = list(self.configs)
         # truth meshes (``truth: mesh.ply``): (vertices (V, 3), faces (F, 3)), read once, on the host
         self.truth_meshes = {key: self._truth_mesh(key) for key, cfg in self.configs.items() if is_mesh_file(cfg.truth)}
+        self.resolutions = coarse_to_fine.schedules(self.scene, self.configs)  # {key: ResolutionSchedule} of coarse-to-fine grids
         self.scene_parameters = nn.ModuleList(self._build_parameter(key) for key in self.keys)
         self.loss_fn = _resolve_loss(loss)
         self.denoiser = _resolve_denoiser(denoiser)
@@ -173,7 +175,12 @@ class InverseRenderingModule(pl.LightningModule):
             raise TypeError(f"parameters[{key!r}]: {key!r} has type {info.type_name}, which torchir cannot optimise: {_unbindable_hint(key, info.type_name)}")
         if self.configs[key].parametrization is not None:
             return self._build_large_steps(key)
-        initial = self._config_value(key, self.configs[key].init, "init")
+        if key in self.resolutions:  # a coarse-to-fine grid starts at its first resolution
+            config, scene_value = self.configs[key], self.scene.get(key)
+            initial = coarse_to_fine.initial_grid(config.init, scene_value, self.resolutions[key].first, config.bounds,
+                                              config.seed, f"parameters[{key!r}].init")
+        else:
+            initial = self._config_value(key, self.configs[key].init, "init")
         self.scene.check_values({key: initial.requires_grad_()})  # dtype, shape, differentiable, finite
         return SceneParameter(key, initial.detach(), self.configs[key])
 
@@ -313,14 +320,14 @@ class InverseRenderingModule(pl.LightningModule):
         :meth:`parameter_errors` gives each parameter's own."""
         if not truth:
             return None
-        values = self.scene_values() if values is None else values
+        values = coarse_to_fine.on_truth_grids(self.scene_values() if values is None else values, truth)
         sq = sum(float((values[k].detach() - t.to(values[k])).square().sum()) for k, t in truth.items())
         n = sum(t.numel() for t in truth.values())
         return math.sqrt(sq / n)
 
     def parameter_errors(self, truth: dict[str, torch.Tensor], values: Optional[dict[str, torch.Tensor]] = None) -> dict[str, float]:
         """``{key: RMSE of that parameter's entries against its truth}`` (its own units)."""
-        values = self.scene_values() if values is None else values
+        values = coarse_to_fine.on_truth_grids(self.scene_values() if values is None else values, truth)
         return {k: math.sqrt(float((values[k].detach() - t.to(values[k])).square().mean())) for k, t in truth.items()}
 
     def error_metrics(self, values: Optional[dict[str, torch.Tensor]] = None) -> dict[str, float]:
@@ -576,6 +583,7 @@ class InverseRenderingModule(pl.LightningModule):
         strategy = getattr(self.trainer, "strategy", None)  # (tests drive setup with a stand-in trainer)
         if strategy is not None:
             _check_trainer_device(strategy.root_device)
+            coarse_to_fine.check_single_process(self, self.trainer.world_size)
         datamodule = getattr(self.trainer, "datamodule", None)
         synthetic = datamodule is None or getattr(datamodule, "synthetic", True)
         if self.pixel_mode and getattr(datamodule, "saturation", None) is not None:
@@ -626,7 +634,12 @@ class InverseRenderingModule(pl.LightningModule):
         if self.sampler is not None and hasattr(self.sampler, "state_dict"):
             checkpoint["torchir_sampler"] = _to_checkpoint(self.sampler.state_dict())
 
+    def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
+        """Resize the coarse-to-fine grids whose next stage starts at this step, before it renders."""
+        coarse_to_fine.apply_schedule(self, self.global_step)
+
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        coarse_to_fine.match_checkpoint(self, checkpoint.get("state_dict", {}))  # grids resized before the state loads
         if self.sampler is not None and "torchir_sampler" in checkpoint:
             self.sampler.load_state_dict(_from_checkpoint(checkpoint["torchir_sampler"]))
 

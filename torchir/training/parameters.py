@@ -61,6 +61,11 @@ class ParameterConfig:
             ``<shape>.vertex_positions``: optimise the Large Steps latent of the scene's mesh
             (:class:`LargeStepsParameter`). ``init`` is then the scene's mesh (the default, or
             ``scene``) or explicit positions; ``transform`` must stay ``none``, without ``bounds``.
+        resolution: a coarse-to-fine schedule ``{resolution: first step}`` for a ``gridvolume``'s
+            data (``<...>.data``, ``(Z, Y, X, C)``), e.g. ``{16: 0, 64: 20}``: 16³ from step 0,
+            64³ from step 20 (a key ``n`` is ``n³``; ``"ZxYxX"`` or ``"[Z, Y, X]"`` give other
+            shapes). ``init`` is taken at the first resolution; at each later stage the value is
+            resampled trilinearly, with the optimiser's moments (:mod:`torchir.training.resolution`).
     """
 
     init: InitValue = 0.5
@@ -70,6 +75,7 @@ class ParameterConfig:
     seed: int = 0
     truth: Optional[InitValue] = None
     parametrization: Optional[dict[str, Any]] = None
+    resolution: Optional[dict[Union[int, str], int]] = None
 
 
 def is_mesh_file(spec: object) -> bool:
