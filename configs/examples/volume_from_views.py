@@ -26,10 +26,20 @@ def truth_grid(size: int = 16, ring: float = 0.1, ball: float = 0.15) -> np.ndar
     return (ring * ring_shape + ball * ball_shape).astype(np.float32)[..., None]
 
 
+def truth_albedo(size: int = 16) -> np.ndarray:
+    """A per-voxel RGB albedo, ``(size, size, size, 3)`` float32: from (0.9, 0.5, 0.3) at x = -1 to
+    (0.3, 0.6, 0.9) at x = 1 (Yan et al. 2025 recover density and albedo per voxel)."""
+    x = (np.arange(size) + 0.5) / size
+    rgb = (1 - x)[:, None] * np.array([0.9, 0.5, 0.3]) + x[:, None] * np.array([0.3, 0.6, 0.9])  # (X, 3)
+    return np.ascontiguousarray(np.broadcast_to(rgb, (size, size, size, 3)), dtype=np.float32)
+
+
 def build(resolution: int | list[int] | None = None, grid: int = 16, views: int = 5, albedo: float = 0.8,
-          max_depth: int = 8, ring: float = 0.1, ball: float = 0.15) -> dict[str, Any]:
+          max_depth: int = 8, ring: float = 0.1, ball: float = 0.15, albedo_grid: int | None = None) -> dict[str, Any]:
     """The scene dict (``resolution``: film size, default 32²; ``grid``, ``ring``, ``ball``: the
-    truth grid's size and peaks, :func:`truth_grid`)."""
+    truth grid's size and peaks, :func:`truth_grid`; ``albedo_grid``: a size, to make the albedo a
+    per-voxel RGB grid (:func:`truth_albedo`, key ``object.interior_medium.albedo.data``) instead of
+    the constant ``albedo``)."""
     import mitsuba as mi
 
     from torchir import rigs
@@ -41,7 +51,9 @@ def build(resolution: int | list[int] | None = None, grid: int = 16, views: int 
         "sigma_t": {"type": "gridvolume", "grid": mi.VolumeGrid(truth_grid(grid, ring, ball)),
                     "to_world": mi.ScalarTransform4f().translate(-1.0).scale(2.0)},  # the unit cube onto the cube
         "scale": 40.0,
-        "albedo": albedo,
+        "albedo": albedo if albedo_grid is None else {
+            "type": "gridvolume", "grid": mi.VolumeGrid(truth_albedo(albedo_grid)),
+            "to_world": mi.ScalarTransform4f().translate(-1.0).scale(2.0)},
     }
     return {"type": "scene", "integrator": {"type": "prbvolpath", "max_depth": max_depth},
             **{f"view_{i}": s for i, s in enumerate(sensors)},

@@ -121,6 +121,28 @@ def test_the_resize_resamples_the_value_and_adam_s_moments_and_keeps_the_step():
     assert apply_schedule(module, 3) == [] and p.latent is new
 
 
+def test_density_and_rgb_albedo_grids_resize_together_and_both_get_gradients():
+    """Yan et al.'s volume task, density and albedo per voxel: an RGB albedo grid (C = 3) takes a
+    schedule beside the density's; at the step both become 8³ (the albedo keeps its 3 channels),
+    and a render of the resized scene differentiates both."""
+    from torchir.functions import render
+
+    albedo = "object.interior_medium.albedo.data"
+    schedule = {"bounds": [0.0, 1.0], "resolution": {4: 0, 8: 2}}
+    module = InverseRenderingModule(
+        scene=BUILD, resolution=8, scene_options={**TINY, "albedo_grid": 8}, spp=1, preview_spp=1,
+        parameters={KEY: {"init": 0.05, "bounds": [1e-6, 1.0], "resolution": {4: 0, 8: 2}}, albedo: {"init": 0.5, **schedule}},
+    )
+    assert [tuple(p.latent.shape) for p in module.scene_parameters] == [(4, 4, 4, 1), (4, 4, 4, 3)]
+    module._trainer = SimpleNamespace(optimizers=[module.configure_optimizers()])
+    assert sorted(apply_schedule(module, 2)) == sorted([KEY, albedo])
+    assert [tuple(p.latent.shape) for p in module.scene_parameters] == [(8, 8, 8, 1), (8, 8, 8, 3)]
+    image = render(module.scene, module.scene_values(), spp=4, seed=0)
+    image.sum().backward()
+    for p in module.scene_parameters:
+        assert p.latent.grad is not None and torch.isfinite(p.latent.grad).all() and float(p.latent.grad.abs().sum()) > 0
+
+
 def test_a_log_grid_resamples_its_value_and_per_entry_bounds_follow():
     """Transform log: the value (not the log) is resampled; per-entry bounds reach the new size."""
     module = _module(init="random", bounds=None, transform="log", seed=3)
