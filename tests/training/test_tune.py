@@ -14,7 +14,7 @@ import yaml
 import torchir
 from torchir import cli
 from torchir.modules import LOSSES
-from torchir.tune import EFFORTS, Setting, enumerate_space, equal_time_error, pareto_front
+from torchir.tune import EFFORTS, OPTIMISER_WINDOW, Setting, enumerate_space, equal_time_error, pareto_front
 from torchir.tune.config import read_config, tuned_path, write_tuned
 from torchir.tune.search import BudgetSpent, Clock, Search, coordinate_search, grid_search, with_loss_choice
 
@@ -216,7 +216,7 @@ def test_tune_command_writes_the_table_results_plot_and_a_tuned_config_that_load
     assert cli.main(["tune", str(tiny), "--quick", "--budget", "120"]) == 0
     printed = capsys.readouterr().out
     out = tiny.with_name("run_tune")
-    assert "equal-time error" in printed and "[tune   1]" in printed
+    assert "window error" in printed and "[tune   1]" in printed
     assert {"summary.md", "results.json", "pareto.png"} <= {p.name for p in out.iterdir()}
     results = json.loads((out / "results.json").read_text())
     assert results["stopped_by_budget"] is False
@@ -275,12 +275,15 @@ def test_rows_merge_each_settings_trials_and_mark_the_front_and_the_choice():
               {"kind": "training", "key": a.key, "setting": a.label(), "status": "ran", "metric": "param_error", "steps": 9,
                "decrease_per_second": 0.2, "times": [0.0, 0.01]}]
     rows = {r["setting"]: r for r in setting_rows(trials, {s.key: s for s in (a, b, c, d)}, 0.01, b)}
-    assert rows["spp 16"]["steps"] == 12 and rows["spp 16"]["equal_time_error"] == pytest.approx(0.5 * 2)
-    assert rows["spp 4"]["equal_time_error"] == pytest.approx(1.0) and rows["spp 4"]["decrease_per_second"] == 0.2
+    # rows without a persistent part: the whole error averages out over the optimiser's window of
+    # OPTIMISER_WINDOW config steps (0.01 s each): error x sqrt(s/step / (window x 0.01 s))
+    window = OPTIMISER_WINDOW * 0.01
+    assert rows["spp 16"]["steps"] == 12 and rows["spp 16"]["window_error"] == pytest.approx(0.5 * math.sqrt(0.04 / window))
+    assert rows["spp 4"]["window_error"] == pytest.approx(math.sqrt(0.01 / window)) and rows["spp 4"]["decrease_per_second"] == 0.2
     assert rows["spp 4"]["pareto"] and not rows["spp 16"]["pareto"]  # slower and no better at equal time
     assert rows["spp 16"]["chosen"] and not rows["spp 4"]["chosen"]
     assert rows["spp 4 + restir(auto)"]["status"] == "unavailable"
-    assert rows["spp 4 + loss loi"]["seconds_per_step"] == pytest.approx(0.1) and "equal_time_error" not in rows["spp 4 + loss loi"]
+    assert rows["spp 4 + loss loi"]["seconds_per_step"] == pytest.approx(0.1) and "window_error" not in rows["spp 4 + loss loi"]
     text = "\n".join(table(list(rows.values())))
     assert "**spp 16**" in text and "unavailable: no such preset" in text and "training score only" in text
     assert "param RMSE decrease/s" in text and "screened only" in text

@@ -2,7 +2,7 @@
 known error (``g_i = g_ref + e_i``, ``|e_i|`` chosen) and batches of known spread: the relative
 errors, the reference's relative standard error and when its batches stop, the reference's own
 error removed in quadrature (also where a trial measures less than it), the seconds charged per
-step, the equal-time score and the ranking. The trainer is replaced by fakes that hand the
+step, the split of a trial's error into what persists and what averages out, the window score and the ranking. The trainer is replaced by fakes that hand the
 recorders these gradients and timings: no scene is rendered.
 
 (tests/training/test_tune.py already pins ``equal_time_error``, ``pareto_front`` and straight-line
@@ -178,7 +178,8 @@ def test_gradient_trial_reports_the_error_beyond_the_reference_and_the_charged_s
     1 / (sqrt(5) 5)) and trial gradients with error norms 1.5, 2, 0.5, 1 (relative errors 0.3, 0.4,
     0.1, 0.2): gradient_error = sqrt(mean(e²) - se²); a step is charged its median seconds plus
     ReSTIR's burn-in over the config's max_steps, or a pixel sampler's Stage 1 over its
-    ``refresh_every`` (20 unless set); the search scores the row error x sqrt(seconds)."""
+    ``refresh_every`` (20 unless set); the error's split into a persistent part and a spread, and
+    the search's score, the spread's window error."""
     b = bench(monkeypatch, tmp_path, max_steps=50)
     ref, _ = fake_reference(monkeypatch, b, alternating(64))
     se2 = 1 / 125  # (1 / (sqrt(5) 5))²
@@ -202,9 +203,68 @@ def test_gradient_trial_reports_the_error_beyond_the_reference_and_the_charged_s
     below = fake_trial(monkeypatch, b, Setting(8), errors_of([0.5, 0.25]), [0.1, 0.1])  # mean of 0.1², 0.05² < 0.0894²
     assert below["gradient_error"] == 0.0
 
-    search = Search(lambda setting, steps, deadline: row, Clock(None))
+    # the split (split_error): the errors 1.5 D, -2 D, 0.5 (0.6, -0.8, 0, 0), (0, 1, 0, 0) have the mean
+    # (0.075, 0.15, -0.075, -0.1), |mean|² = 0.04375; their spread² = (7.5 - 4 x 0.04375) / 3 / 25; nothing
+    # persists beyond spread² / 4 and the reference's se², so the score is the spread's window error
+    spread_sq = (7.5 - 4 * 0.04375) / 3 / 25
+    assert row["step_spread"] == pytest.approx(math.sqrt(spread_sq), rel=1e-12) and row["persistent_error"] == 0.0
+    search = Search(lambda setting, steps, deadline: row, Clock(None), window_seconds=2.0)
     search.measure(restir, 4)
-    assert search.score(restir) == pytest.approx(math.sqrt(mean) * math.sqrt(0.25 + 0.06), rel=1e-12)
+    assert search.score(restir) == pytest.approx(math.sqrt(spread_sq * (0.25 + 0.06) / 2.0), rel=1e-12)
+
+
+def test_split_error_separates_a_kept_error_from_one_that_averages_out():
+    """Steps ``g_ref + b u + (-1)^i d`` (u ⟂ d, |u| = |d| = 1, |g_ref| = 5): the mean's error is
+    ``b u``, the spread² about it ``n / (n - 1) |d|² / 25``; the persistent part is what the mean
+    keeps beyond ``spread² / n`` and the reference's ``se²``: ``b² / 25 - 1 / ((n - 1) 25) - se²``.
+    One step has no split (NaN); with b = 0 nothing persists (floored at 0)."""
+    from torchir.tune.measure import split_error
+
+    u = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    d = torch.tensor([0.0, 0.0, 1.0, 0.0], dtype=torch.float64)
+    for n, b, se in ((4, 2.0, 0.0), (6, 1.5, 0.05), (4, 0.0, 0.0)):
+        grads = [REF + b * u + (d if i % 2 == 0 else -d) for i in range(n)]
+        persistent, spread = split_error(grads, REF, se)
+        assert spread == pytest.approx(math.sqrt(n / (n - 1) / 25), rel=1e-12)
+        assert persistent == pytest.approx(math.sqrt(max(b * b / 25 - 1 / ((n - 1) * 25) - se * se, 0.0)), rel=1e-12, abs=1e-15)
+    assert all(math.isnan(x) for x in split_error([REF + u], REF, 0.0))
+
+
+def test_the_window_error_ranks_an_error_kept_across_steps_below_one_that_averages_out():
+    """Two settings with the same per-step RMS error at the same cost: ``steady`` keeps one error
+    on every step (as chains carried across steps do), ``fresh`` draws a new one each step. Their
+    equal-time errors are equal; over an optimiser's window of 10 steps only ``fresh``'s averages
+    out: window errors ``sqrt(p² + s² / 10)`` worked out by hand, and ``fresh`` ranks first."""
+    from torchir.tune.search import OPTIMISER_WINDOW, equal_time_error, row_window_error
+
+    b = 1.0  # |error| of every step: 0.2 relative
+    u = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    d = torch.tensor([0.0, 0.0, 1.0, 0.0], dtype=torch.float64)
+    steady = [REF + b * u for _ in range(8)]
+    fresh = [REF + b * (d if i % 2 == 0 else -d) for i in range(8)]
+    from torchir.tune.measure import split_error
+
+    rows = {}
+    for name, grads in (("steady", steady), ("fresh", fresh)):
+        errors = relative_errors(grads, REF)
+        p, s_ = split_error(grads, REF, 0.0)
+        rows[name] = {"gradient_error": error_beyond_reference(errors, 0.0)[0], "persistent_error": p, "step_spread": s_,
+                      "seconds_per_step": 0.1}
+    assert rows["steady"]["gradient_error"] == pytest.approx(rows["fresh"]["gradient_error"], rel=1e-12)
+    assert equal_time_error(rows["steady"]["gradient_error"], 0.1, 1.0) == pytest.approx(equal_time_error(rows["fresh"]["gradient_error"], 0.1, 1.0))
+    window = OPTIMISER_WINDOW * 0.1
+    steady_p = math.sqrt(0.2**2 - 0.0)  # spread 0: all of it persists
+    fresh_s = math.sqrt(8 / 7 * (b / 5) ** 2)
+    fresh_p = math.sqrt(max(0.0, 0.0 - fresh_s**2 / 8))
+    assert rows["steady"]["step_spread"] == 0.0 and rows["steady"]["persistent_error"] == pytest.approx(steady_p, rel=1e-12)
+    assert row_window_error(rows["steady"], window) == pytest.approx(steady_p, rel=1e-12)
+    assert row_window_error(rows["fresh"], window) == pytest.approx(math.sqrt(fresh_p**2 + fresh_s**2 / OPTIMISER_WINDOW), rel=1e-12)
+    search = Search(lambda setting, steps, deadline: dict(rows["steady" if setting.spp == 1 else "fresh"], status="ran", steps=steps,
+                                                          key=setting.key, setting=setting.label(), kind="gradient"),
+                    Clock(None), window_seconds=window)
+    search.measure(Setting(1), 8)
+    search.measure(Setting(2), 8)
+    assert search.ranked() == [Setting(2), Setting(1)]
 
 
 # ------------------------------------------------------------------------------ the search's score and ranking

@@ -25,7 +25,7 @@ from .. import backend
 from .config import UserConfig
 from .space import Setting
 
-__all__ = ["Reference", "Bench", "relative_errors"]
+__all__ = ["Reference", "Bench", "relative_errors", "split_error"]
 
 REFERENCE_SEED_OFFSET = 7_654_321  # the reference's module seed: step seeds unlike any trial's
 
@@ -46,6 +46,24 @@ def relative_errors(grads: list[torch.Tensor], reference: torch.Tensor) -> list[
     """``||g_i - g_ref|| / ||g_ref||`` per gradient ``g_i`` (each ``(P,)``)."""
     norm = float(reference.norm())
     return [float((g - reference).norm()) / norm for g in grads]
+
+
+def split_error(grads: list[torch.Tensor], reference: torch.Tensor, ref_se: float) -> tuple[float, float]:
+    """A trial's relative gradient error split into ``(persistent, spread)``: ``spread`` is one
+    step's error about the trial's mean gradient (what averages out over steps), ``persistent``
+    the mean gradient's error beyond what ``n`` independent steps of that spread leave
+    (``spread² / n``) and beyond the reference's own error ``ref_se`` (a bias, or error kept from
+    step to step), removed in quadrature and floored at 0. Both relative to ``||reference||``;
+    ``(nan, nan)`` for fewer than 2 steps."""
+    n = len(grads)
+    if n < 2:
+        return math.nan, math.nan
+    norm_sq = float(reference.norm()) ** 2
+    stacked = torch.stack(grads).double() - reference.double()  # (n, P): each step's error
+    mean = stacked.mean(0)
+    spread_sq = float((stacked - mean).square().sum()) / (n - 1) / norm_sq
+    persistent_sq = float(mean.square().sum()) / norm_sq - spread_sq / n - ref_se * ref_se
+    return math.sqrt(max(persistent_sq, 0.0)), math.sqrt(spread_sq)
 
 
 def _relative_se(grads: torch.Tensor) -> float:
@@ -285,7 +303,8 @@ class Bench:
     def gradient_trial(self, setting: Setting, steps: int, warmup: int = 2, deadline: Optional[float] = None) -> dict[str, Any]:
         """``steps`` gradient steps of ``setting`` at the starting point after ``warmup`` untimed
         ones: per-step relative errors against the reference, RMS error with the reference's
-        own error removed in quadrature, and seconds per step charged with one-off costs
+        own error removed in quadrature, that error split into the part that averaged out over
+        the steps and the part that persisted (:func:`split_error`), and seconds per step charged with one-off costs
         (ReSTIR's burn-in over ``trainer.max_steps``, a pixel sampler's Stage 1 over its
         ``refresh_every``). ``status`` is ``ran``, ``rejected`` (the module refused the
         setting) or ``failed``."""
@@ -303,10 +322,12 @@ class Bench:
             return {**row, "status": "failed", "error": "no step was measured", "seconds": time.perf_counter() - started}
         errors = relative_errors(recorder.grads, self.reference.grad)
         error, error_se = error_beyond_reference(errors, self.reference.relative_se)
+        persistent, spread = split_error(recorder.grads, self.reference.grad, self.reference.relative_se)
         step = statistics.median(recorder.seconds)
         charged = step + self._one_off(setting, recorder)
         return {**row, "status": "ran", "steps": len(errors), "relative_errors": errors, "gradient_error": error,
-                "gradient_error_sq_se": error_se, "step_seconds": recorder.seconds, "seconds_per_step": charged,
+                "gradient_error_sq_se": error_se, "persistent_error": persistent, "step_spread": spread,
+                "step_seconds": recorder.seconds, "seconds_per_step": charged,
                 "median_step_seconds": step, "seconds": time.perf_counter() - started}
 
     def _attempt(self, setting: Setting, row: dict[str, Any], recorder: Any, all_views: bool,

@@ -13,7 +13,7 @@ from typing import Any, Callable, Optional
 from .config import UserConfig, read_config, write_tuned
 from .measure import Bench, Reference
 from .report import plot_pareto, setting_rows, table
-from .search import BudgetSpent, Clock, Search, coordinate_search, grid_search, training_candidates, with_loss_choice
+from .search import OPTIMISER_WINDOW, BudgetSpent, Clock, Search, coordinate_search, grid_search, training_candidates, with_loss_choice
 from .space import Setting, Space, enumerate_space
 
 __all__ = ["Effort", "EFFORTS", "tune", "default_out", "reference_batch_spp"]
@@ -46,7 +46,7 @@ def default_out(config: Path) -> Path:
 def tune(config: str | Path, budget: Optional[float] = 600.0, out: Optional[str | Path] = None, full: bool = False,
          quick: bool = False, echo: Callable[[str], None] = print) -> dict[str, Any]:
     """Measure the settings of ``config`` (a ``torchir fit`` YAML), choose the one with the lowest
-    equal-time gradient error (or a loss change that trains clearly faster), and write the
+    window error (or a loss change that trains clearly faster), and write the
     outputs: ``<out>/summary.md`` (the table), ``results.json``, ``pareto.png`` and the tuned
     config ``<stem>.tuned.yaml`` beside ``config``. Returns the results (``results.json``'s content
     plus ``chosen_setting``, the :class:`~torchir.tune.space.Setting`, and ``out``).
@@ -98,6 +98,9 @@ def tune(config: str | Path, budget: Optional[float] = 600.0, out: Optional[str 
         chosen: Optional[Setting] = None
         try:
             search.measure(space.base, effort.short if not full else effort.long)  # always, whatever the budget
+            base = search.best.get(space.base.key, {})
+            if base.get("status") == "ran":  # scores: the gradient averaged over the optimiser's window of the config's steps
+                search.window_seconds = OPTIMISER_WINDOW * base["seconds_per_step"]
             search.reserve = reserve
             chosen = grid_search(space, search, effort.long) if full else coordinate_search(
                 space, search, effort.short, effort.long, effort.finalists)
@@ -106,7 +109,7 @@ def tune(config: str | Path, budget: Optional[float] = 600.0, out: Optional[str 
             ranked = search.ranked()
             chosen = ranked[0] if ranked else None
         search_seconds = clock.elapsed()
-        final, why = chosen, "the lowest equal-time gradient error"
+        final, why = chosen, "the lowest window error"
         trained: list[tuple[Setting, dict[str, Any]]] = []
         for setting in training_candidates(space, search, chosen, full):
             if clock.left() <= 0:
@@ -133,7 +136,7 @@ def tune(config: str | Path, budget: Optional[float] = 600.0, out: Optional[str 
                "tuned_config": None if tuned is None else str(tuned), "stopped_by_budget": stopped,
                "search_seconds": search_seconds, "wall_seconds": clock.elapsed()}
     save_results(out, results, summary)
-    plot = plot_pareto(rows, out / "pareto.png", f"{user.path.name}: equal-time gradient error vs cost")
+    plot = plot_pareto(rows, out / "pareto.png", f"{user.path.name}: window error vs cost")
     echo(f"[tune] wrote {out}/summary.md, results.json{', pareto.png' if plot else ''}"
          f"{'' if tuned is None else f' and {tuned}'} ({clock.elapsed():.0f} s)")
     return {**results, "chosen_setting": final, "out": out}
@@ -195,7 +198,7 @@ def _write_tuned(user: UserConfig, space: Space, final: Optional[Setting], why: 
     row = next((r for r in rows if r["key"] == final.key), {})
     header = (f"Tuned by `torchir tune` from {user.path.name}: {final.label()} ({why}).\n"
               f"Changed: {', '.join(f'model.{k}' for k in changes) or 'nothing (the config was already the best measured)'}; "
-              f"equal-time gradient error {row.get('equal_time_error', math.nan):.3g}, "
+              f"window error {row.get('window_error', math.nan):.3g}, "
               f"{row.get('seconds_per_step', math.nan):.3g} s/step.")
     path = write_tuned(user, changes, header)
     InverseRenderingModule(**{**_read(path).model, "preview_spp": 1})  # it must load as torchir fit loads it
@@ -223,10 +226,12 @@ def _summary(path: Path, space: Space, reference: Reference, rows: list[dict[str
     text = [
         f"Gradient error: relative norm error of the parameters' gradient at the starting point against the config's "
         f"own setting at {reference.spp} spp ({reference.batches} batches; its own error {reference.relative_se:.3f}, "
-        f"removed in quadrature), RMS over the steps. Equal-time error: that error after the time of "
-        f"{'one step of the config as is (' + format(budget_seconds, '.3g') + ' s)' if budget_seconds else 'one second'}, "
-        f"error x sqrt(s/step / that time). Decrease/s: how fast a short training run lowered the error "
-        f"(parameter RMSE where the truth is known, else image MSE).",
+        f"removed in quadrature), RMS over the steps. Persistent: the part of it that did not average out over the "
+        f"trial's steps (a bias, or error kept from step to step). Window error: the error of the gradient an optimiser "
+        f"averages over {OPTIMISER_WINDOW} steps of the config as is "
+        f"({'of ' + format(budget_seconds, '.3g') + ' s each' if budget_seconds else 'one second'}), "
+        f"sqrt(persistent² + spread² x s/step / that time): the score. Decrease/s: how fast a short training run "
+        f"lowered the error (parameter RMSE where the truth is known, else image MSE).",
         "",
         *lines, "",
         *([] if full else ["Screened only: measured over the short trial alone; the choice is made among the best few, "

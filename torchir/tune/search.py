@@ -1,11 +1,15 @@
 """Which settings ``torchir tune`` measures, and in what order: a cheap coordinate search with
 short trials and a longer look at the best few (the default), or the full grid (``--full``).
 
-The score of a setting that keeps the config's loss is its *equal-time gradient error*: the
-relative gradient error ``e`` measured at ``t`` seconds per step, scaled to a common time
-``T`` as ``e * sqrt(t / T)`` (averaging ``T / t`` independent gradients divides the variance by
-``T / t``). The evaluator is injected (``evaluate(setting, steps) -> row``), so the search runs
-on synthetic rows too.
+The score of a setting that keeps the config's loss is its *window error*: the relative error of
+the gradient an optimiser averages over a window of ``T`` seconds (Adam's first moment averages
+about ``1 / (1 - beta1)`` = :data:`OPTIMISER_WINDOW` steps; ``T`` is that many steps of the
+config's own setting), :func:`window_error`. A trial splits its error into the part that
+averaged out over its steps (the spread of one step's gradient, ``s``, at ``t`` seconds per step)
+and the part that did not (``p``: bias, or error that persists from step to step, as a chain kept
+across steps has): ``sqrt(p² + s² t / T)``. Treating every step's error as independent
+(:func:`equal_time_error`, ``e sqrt(t / T)``) favoured settings whose error persists. The
+evaluator is injected (``evaluate(setting, steps) -> row``), so the search runs on synthetic rows too.
 """
 from __future__ import annotations
 
@@ -16,8 +20,10 @@ from typing import Any, Callable, Optional
 
 from .space import Setting, Space
 
-__all__ = ["BudgetSpent", "Clock", "Search", "equal_time_error", "pareto_front", "coordinate_search", "grid_search",
-           "training_candidates", "with_loss_choice"]
+__all__ = ["BudgetSpent", "Clock", "Search", "OPTIMISER_WINDOW", "equal_time_error", "window_error", "row_window_error",
+           "pareto_front", "coordinate_search", "grid_search", "training_candidates", "with_loss_choice"]
+
+OPTIMISER_WINDOW = 10  # steps Adam's first moment averages over: 1 / (1 - beta1), beta1 = 0.9
 
 Evaluator = Callable[[Setting, int, Optional[float]], dict[str, Any]]  # (setting, steps, deadline) -> trial row
 
@@ -28,6 +34,26 @@ def equal_time_error(error: float, step_seconds: float, budget_seconds: float) -
     if not (step_seconds > 0 and budget_seconds > 0):
         raise ValueError(f"seconds must be > 0, got step {step_seconds!r}, budget {budget_seconds!r}")
     return error * math.sqrt(step_seconds / budget_seconds)
+
+
+def window_error(persistent: float, spread: float, step_seconds: float, window_seconds: float) -> float:
+    """The relative error of the mean gradient over ``window_seconds`` of steps of ``step_seconds``
+    each: ``sqrt(persistent² + spread² * step_seconds / window_seconds)``. ``spread``: one step's
+    error that averages out (independent from step to step); ``persistent``: the error that does
+    not (a bias, or error kept from step to step). With ``persistent = 0`` it is
+    :func:`equal_time_error` of ``spread``."""
+    if not (step_seconds > 0 and window_seconds > 0):
+        raise ValueError(f"seconds must be > 0, got step {step_seconds!r}, window {window_seconds!r}")
+    return math.sqrt(persistent * persistent + spread * spread * step_seconds / window_seconds)
+
+
+def row_window_error(row: dict[str, Any], window_seconds: float) -> float:
+    """:func:`window_error` of a gradient trial's row: its ``persistent_error`` and ``step_spread``
+    where it measured them (two steps or more), else its whole ``gradient_error`` taken as spread."""
+    persistent, spread = row.get("persistent_error"), row.get("step_spread")
+    if persistent is None or spread is None or not (math.isfinite(persistent) and math.isfinite(spread)):
+        persistent, spread = 0.0, row["gradient_error"]
+    return window_error(persistent, spread, row["seconds_per_step"], window_seconds)
 
 
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[bool]:
@@ -75,8 +101,9 @@ class Search:
     counts). ``reserve``: seconds of the budget kept for what comes after the search."""
 
     def __init__(self, evaluate: Evaluator, clock: Clock, reserve: float = 0.0,
-                 progress: Optional[Callable[[dict[str, Any]], None]] = None) -> None:
+                 progress: Optional[Callable[[dict[str, Any]], None]] = None, window_seconds: float = 1.0) -> None:
         self.evaluate, self.clock, self.reserve, self.progress = evaluate, clock, reserve, progress
+        self.window_seconds = window_seconds  # the optimiser's averaging window the scores use (run sets it)
         self.rows: list[dict[str, Any]] = []  # every trial, in order
         self.best: dict[str, dict[str, Any]] = {}  # setting key -> its longest successful trial (or its failure)
         self.settings: dict[str, Setting] = {}
@@ -108,12 +135,12 @@ class Search:
         return self.score(setting)
 
     def score(self, setting: Setting) -> float:
-        """``error * sqrt(seconds per step)``: the equal-time error at a 1-second budget (inf
-        when not measured or failed)."""
+        """The window error over ``window_seconds`` (:func:`row_window_error`; inf when not
+        measured or failed)."""
         row = self.best.get(setting.key)
         if row is None or row.get("status") != "ran":
             return math.inf
-        return equal_time_error(row["gradient_error"], row["seconds_per_step"], 1.0)
+        return row_window_error(row, self.window_seconds)
 
     def ranked(self, min_steps: int = 0) -> list[Setting]:
         """Measured settings, best score first (those measured over at least ``min_steps``)."""
@@ -194,7 +221,7 @@ def with_loss_choice(chosen: Setting, trained: Sequence[tuple[Setting, dict[str,
     Returns it and why."""
     rates = {s.key: r.get("decrease_per_second", math.nan) for s, r in trained if r.get("status") == "ran"}
     rate = rates.get(chosen.key, math.nan)
-    best, why = chosen, "the lowest equal-time gradient error"
+    best, why = chosen, "the lowest window error"
     for setting, row in trained:
         other = rates.get(setting.key, math.nan)
         if setting.gradient_scored or not (rate > 0 and other > factor * rate and other > rates[best.key]):

@@ -183,7 +183,7 @@ def enumerate_space(model: dict[str, Any], scene: Any, loss_fn: Any, pixel_targe
         scene: its loaded :class:`torchir.Scene` (ReSTIR's scene check).
         loss_fn: its loss module (per-pixel or not).
         pixel_targets_ok: whether the targets allow pixel sampling (no clipping).
-        quick: fewer options per key.
+        quick: fewer spp rungs and one pixel budget (every family of sampler and denoiser stays).
     """
     from ..integrators.restir_di import check_scene
 
@@ -195,7 +195,7 @@ def enumerate_space(model: dict[str, Any], scene: Any, loss_fn: Any, pixel_targe
     if getattr(loss_fn, "pixelwise", False) and hasattr(loss_fn, "pixel_terms"):
         if pixel_targets_ok:
             fractions = (0.25,) if quick else (0.25, 0.05)
-            kinds = ("uniform", "adaptive") if quick else ("uniform", "loss", "adaptive")
+            kinds = ("uniform", "loss", "adaptive")  # every family, quick too (quick: one budget)
             samplers += [{"type": k, "budget": f, **PIXEL} for f in fractions for k in kinds
                          if not (k == "loss" and f != fractions[-1])]
         else:
@@ -207,9 +207,9 @@ def enumerate_space(model: dict[str, Any], scene: Any, loss_fn: Any, pixel_targe
     except ValueError as error:
         notes.append(f"ReSTIR: left out, {error}")
     else:
-        presets = ("auto", "restir") if quick else ("auto", "persistent", "restir", "b2")
+        presets = ("auto", "persistent", "restir", "b2")  # every family, quick too: reuse across steps, in space, none
         samplers += [{"type": "restir", "preset": p} for p in presets]
-    denoisers: list[Optional[dict[str, Any]]] = [None, TARGET_AWARE] if quick else [None, TARGET_AWARE, CROSS_BILATERAL]
+    denoisers: list[Optional[dict[str, Any]]] = [None, TARGET_AWARE, CROSS_BILATERAL]  # every family, quick too
     _include(samplers, sampler)
     _include(denoisers, denoiser)
     losses: list[dict[str, Any]] = []
