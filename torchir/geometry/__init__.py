@@ -7,7 +7,7 @@ from .largesteps import LargeSteps
 from .meshio import read_mesh, write_mesh
 from .metrics import chamfer_distance, hausdorff_distance, sample_surface
 from .optim import AdamUniform
-from .remesh import remesh, remesh_scene
+from .remesh import remesh, remesh_scene, replace_mesh
 
-__all__ = ["LargeSteps", "AdamUniform", "remesh", "remesh_scene", "chamfer_distance", "hausdorff_distance", "sample_surface",
+__all__ = ["LargeSteps", "AdamUniform", "remesh", "remesh_scene", "replace_mesh", "chamfer_distance", "hausdorff_distance", "sample_surface",
            "read_mesh", "write_mesh"]

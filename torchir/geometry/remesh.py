@@ -14,7 +14,7 @@ import torch
 
 from ._mesh import as_faces, as_vertices, host_positions, mean_edge_length, scene_mesh, shape_id, weld_positions
 
-__all__ = ["remesh", "remesh_scene"]
+__all__ = ["remesh", "remesh_scene", "replace_mesh"]
 
 
 def _gpytoolbox() -> Any:
@@ -99,8 +99,6 @@ def remesh_scene(scene: Any, shape: str, vertices: Any = None, edge_length: floa
         ``(new scene, its vertex positions (3V',))``: ``float32``, flat as ``"<shape>.vertex_positions"``,
         on the render device; its faces are ``new_scene.get("<shape>.faces")``.
     """
-    import mitsuba as mi
-
     from .. import backend
     from ..scene import Scene
 
@@ -117,6 +115,44 @@ def remesh_scene(scene: Any, shape: str, vertices: Any = None, edge_length: floa
         raise ValueError(f"vertices has {v.shape[0]} vertices, mesh {name!r} has {old.vertex_count()}")
     faces = np.asarray(old.faces_buffer(), np.int64).reshape(-1, 3)
     v_new, f_new = _remesh_arrays(host_positions(v), faces, edge_length, iterations, project)
+    new = replace_mesh(scene, name, v_new, f_new)
+    positions = torch.as_tensor(v_new.astype(np.float32).ravel(), device=torch.device(backend.device()))
+    return new, positions
+
+
+def replace_mesh(scene: Any, shape: str, vertices: Any, faces: Any) -> Any:
+    """A new :class:`torchir.Scene` in which the mesh ``shape`` has the given vertices and faces
+    (any topology): what :func:`remesh_scene` builds around a remesher's output, and what a
+    resumed run rebuilds from a checkpoint's topology.
+
+    The new scene holds the old one's integrator, sensors, emitters and other shapes (the same
+    objects) and a new mesh of the same id with the old one's BSDF and media, with vertex normals
+    (recomputed by Mitsuba) if the old one had them, without uvs. Derived parameters of other keys
+    carry over.
+
+    Args:
+        scene: the :class:`torchir.Scene`.
+        shape: the mesh's id (``"shape"`` or ``"shape.vertex_positions"``).
+        vertices: ``(V', 3)`` or ``(3V',)`` positions (tensor or array).
+        faces: ``(F', 3)`` or ``(3F',)`` indices into ``vertices``.
+
+    Returns:
+        The new scene; its ``"<shape>.vertex_positions"`` are ``vertices`` in float32.
+    """
+    import mitsuba as mi
+
+    from ..scene import Scene
+
+    if not isinstance(scene, Scene):
+        raise TypeError(f"replace_mesh takes a torchir.Scene, got {type(scene).__name__}")
+    old = scene_mesh(scene, shape)
+    name = shape_id(shape)
+    if old.emitter() is not None:
+        raise ValueError(f"mesh {name!r} is an area light: remeshing emitters is not supported")
+    v_new = host_positions(as_vertices(vertices))
+    f_new = as_faces(faces, v_new.shape[0])
+    if not np.isfinite(v_new).all():
+        raise ValueError("vertices have NaN/Inf entries")
 
     props = mi.Properties()
     for key, value in (("bsdf", old.bsdf()), ("interior", old.interior_medium()), ("exterior", old.exterior_medium())):
@@ -142,5 +178,4 @@ def remesh_scene(scene: Any, shape: str, vertices: Any = None, edge_length: floa
     for derived in {d.group: d for d in scene.derived.values() if d.target != target}.values():
         loaded = {n: np.reshape(scene.derived[n].value, scene.derived[n].shape) for n in derived.group}
         new.derive(derived.target, derived.to_target, loaded)
-    positions = torch.as_tensor(v_new.astype(np.float32).ravel(), device=torch.device(backend.device()))
-    return new, positions
+    return new

@@ -17,6 +17,7 @@ from ..functions import render
 from ..derived import declare as declare_derived
 from ..imageio import clipped_mask
 from ..jpeg import CodecCorrection
+from . import remeshing
 from ._resolve import _as_config, _from_checkpoint, _load_scene, _resolve_denoiser, _resolve_loss, _resolve_sampler, _to_checkpoint
 from . import resolution as coarse_to_fine
 from .parameters import LargeStepsParameter, ParameterConfig, SceneParameter, is_mesh_file, large_steps_lambda, resolve_value
@@ -89,6 +90,11 @@ class InverseRenderingModule(pl.LightningModule):
             with a truth mesh are logged (``chamfer/<key>``, ``hausdorff/<key>``; ~0.1-0.8 s
             each time): on the first row the loggers write, then on the first written row at
             least this many steps after the last, and on the final row.
+        remesh: ``{at: [steps], edge_length: 0.5, iterations: 5, project: true}``: before each
+            step of ``at``, remesh every optimised mesh (``<shape>.vertex_positions``) to
+            ``edge_length`` times its current mean edge and go on with the new topology (a new
+            Large Steps latent, its optimiser state afresh), as Mitsuba's shape tutorial does
+            (:mod:`torchir.training.remeshing`); metrics.csv then has ``vertices/<key>``.
     """
 
     def __init__(
@@ -111,6 +117,7 @@ class InverseRenderingModule(pl.LightningModule):
         optimizer: Literal["adam", "adam_uniform", "sgd"] = "adam",
         preview_spp: int = 64,
         distance_every_n_steps: int = 10,
+        remesh: Optional[dict[str, Any]] = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["loss", "denoiser"])
@@ -167,6 +174,10 @@ class InverseRenderingModule(pl.LightningModule):
         self.nonfinite: Optional[str] = None  # set when a non-finite loss stopped the run
         self.step_metrics: dict[str, float] = {}  # the last step's scalars (loss, errors, paths, sampler/*)
         self._write_logs_at: Optional[int] = None
+        self.remesh_schedule = None if remesh is None else remeshing.RemeshSchedule.from_config(remesh)
+        self.topology = remeshing.TopologyRecord()  # the meshes remeshed so far (checkpointed)
+        if self.remesh_schedule is not None:
+            remeshing.check_remesh(self, self.remesh_schedule)
 
     # ------------------------------------------------------------------------ parameters
     def _build_parameter(self, key: str) -> Union[SceneParameter, LargeStepsParameter]:
@@ -518,6 +529,7 @@ class InverseRenderingModule(pl.LightningModule):
         if self.sampler is not None and hasattr(self.sampler, "diagnostics"):
             metrics.update({f"sampler/{name}": float(value) for name, value in self.sampler.diagnostics().items()})
         metrics.update(self.error_metrics(values))
+        metrics.update(remeshing.vertex_counts(self))
         self._write_logs_at = self.global_step if self._loggers_write() else None
         if self.truth_meshes and self._write_logs_at is not None and self._distances_due():
             metrics.update(self.mesh_distances(values))  # costly (~0.1-0.8 s): on some written rows only
@@ -592,6 +604,8 @@ class InverseRenderingModule(pl.LightningModule):
                 f"{datamodule.saturation} (8/16-bit files): use EXR targets, or set data.saturation: null"
             )
         self._truth = self.value_truth(explicit_only=not synthetic)
+        if self.remesh_schedule is not None:
+            remeshing.check_remesh_truth(self, self._truth)
         if self.pixel_mode:  # under DDP the pixel budget and Stage 1 are shared by the processes
             self.sampler.distribute(self.trainer.global_rank, self.trainer.world_size)
         plan_run = getattr(self.sampler, "plan_run", None)  # ReSTIR "auto" charges its burn-in over the run
@@ -630,15 +644,21 @@ class InverseRenderingModule(pl.LightningModule):
             callbacks.append(StepProgressBar())
         return callbacks
 
+    def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
+        """Before this step renders: remesh (``model.remesh``) and resize the coarse-to-fine grids
+        whose next stage starts here (``resolution``)."""
+        remeshing.apply_remesh_schedule(self, self.global_step)
+        coarse_to_fine.apply_schedule(self, self.global_step)
+
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if self.topology.meshes:  # the current topology: a resume rebuilds the scene from it
+            checkpoint["torchir_topology"] = self.topology.state_dict()
         if self.sampler is not None and hasattr(self.sampler, "state_dict"):
             checkpoint["torchir_sampler"] = _to_checkpoint(self.sampler.state_dict())
 
-    def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
-        """Resize the coarse-to-fine grids whose next stage starts at this step, before it renders."""
-        coarse_to_fine.apply_schedule(self, self.global_step)
-
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if "torchir_topology" in checkpoint:  # before Lightning loads the parameters' state into them
+            remeshing.restore_topology(self, checkpoint["torchir_topology"])
         coarse_to_fine.match_checkpoint(self, checkpoint.get("state_dict", {}))  # grids resized before the state loads
         if self.sampler is not None and "torchir_sampler" in checkpoint:
             self.sampler.load_state_dict(_from_checkpoint(checkpoint["torchir_sampler"]))

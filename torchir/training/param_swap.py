@@ -1,7 +1,8 @@
 """Replace one parameter of a torch optimiser by a new tensor, mid-run: a resized volume grid (a
 coarse-to-fine schedule) or a remeshed surface, whose ``nn.Parameter`` has a new shape.
 
-The optimiser keeps its parameter groups (learning rates, names) and every other parameter's
+The optimiser keeps its parameter groups (learning rates with the scheduler's decay so far, names)
+and every other parameter's
 state; the new parameter takes the old one's place in its group, with the state given (e.g. the
 old moments resampled to the new shape) or a fresh one (none: the optimiser initialises it at its
 next step, as Mitsuba's shape tutorial restarts Adam after a remesh).
@@ -13,7 +14,7 @@ from typing import Any, Optional
 
 import torch
 
-__all__ = ["swap_parameter", "map_state"]
+__all__ = ["swap_parameter", "map_state", "rewrap_distributed"]
 
 
 def swap_parameter(optimizer: torch.optim.Optimizer, old: torch.Tensor, new: torch.Tensor,
@@ -35,6 +36,8 @@ def swap_parameter(optimizer: torch.optim.Optimizer, old: torch.Tensor, new: tor
         >>> opt.param_groups[0]["params"][0] is b, tuple(opt.state[b]["exp_avg"].shape)
         (True, (3,))
     """
+    if not (new.is_leaf and new.requires_grad):
+        raise ValueError("swap_parameter: the new parameter must be a leaf tensor that requires grad (an nn.Parameter)")
     places = [(g, i) for g in optimizer.param_groups for i, p in enumerate(g["params"]) if p is old]
     if not places:
         raise ValueError(f"swap_parameter: the parameter to replace (shape {tuple(old.shape)}) is not one of the optimiser's")
@@ -44,7 +47,7 @@ def swap_parameter(optimizer: torch.optim.Optimizer, old: torch.Tensor, new: tor
         group["params"][index] = new
     optimizer.state.pop(old, None)
     if state:
-        optimizer.state[new] = state
+        optimizer.state[new] = dict(state)
 
 
 def map_state(state: dict[str, Any], old: torch.Tensor, fn: Callable[[torch.Tensor], torch.Tensor]) -> dict[str, Any]:
@@ -58,3 +61,17 @@ def map_state(state: dict[str, Any], old: torch.Tensor, fn: Callable[[torch.Tens
         else:
             out[k] = v.clone() if isinstance(v, torch.Tensor) else v
     return out
+
+
+def rewrap_distributed(trainer: Any) -> None:
+    """Under DDP, wrap the LightningModule in a new ``DistributedDataParallel`` so that its
+    gradient reducer covers the parameters as they are now (the old wrapper's buckets hold the
+    replaced tensors: without this, DDP silently averages nothing into the new one). A collective:
+    every process calls it at the same step. The wrapper's constructor broadcasts rank 0's
+    parameters, so the processes start the new ones equal. Without DDP (one process) it does nothing."""
+    from lightning.pytorch.strategies import DDPStrategy
+
+    strategy = getattr(trainer, "strategy", None)
+    if isinstance(strategy, DDPStrategy) and trainer.world_size > 1:
+        strategy.model = strategy.lightning_module
+        strategy.configure_ddp()
