@@ -1,13 +1,16 @@
 """``swap_parameter``: a parameter swapped for one of another shape in a live optimiser, with a
-fresh or a carried state, the other parameters' state and the lr schedule untouched."""
+fresh or a carried state, the other parameters' state and the lr schedule untouched; and which
+strategies ``rewrap_distributed`` rewraps (the real DDP rewrap: test_remesh_fit.py's slow DDP run)."""
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import pytest
 import torch
 from torch import nn
 
 from torchir.geometry import AdamUniform
-from torchir.training.param_swap import swap_parameter
+from torchir.training.param_swap import rewrap_distributed, swap_parameter
 
 
 def _optimizer(kind: type = torch.optim.Adam):
@@ -64,3 +67,11 @@ def test_bad_swaps_are_refused():
         swap_parameter(optimizer, nn.Parameter(torch.ones(4)), nn.Parameter(torch.ones(4)))
     with pytest.raises(ValueError, match="must be a leaf tensor that requires grad"):
         swap_parameter(optimizer, a, torch.ones(4))
+
+
+def test_only_ddp_is_rewrapped_and_another_multi_process_strategy_is_refused():
+    """One process: nothing to do; several under a strategy torchir cannot rewrap: an error
+    naming it (its reducer would keep the replaced tensor: no gradient averaging of the new one)."""
+    rewrap_distributed(SimpleNamespace(world_size=1, strategy=object()))
+    with pytest.raises(RuntimeError, match="torchir does for DDP only; this run's strategy is object: use trainer.strategy: ddp"):
+        rewrap_distributed(SimpleNamespace(world_size=2, strategy=object()))

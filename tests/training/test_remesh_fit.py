@@ -182,7 +182,11 @@ def test_in_a_lightning_run_the_optimiser_and_sampler_hold_the_new_latent_and_sc
 def test_every_process_takes_process_zero_s_mesh(monkeypatch):
     """Under DDP, process 0 remeshes and broadcasts its mesh; another process, whose positions
     here differ (a remesh of them would give another mesh), takes process 0's mesh and does not
-    remesh its own: both end with the same faces and positions."""
+    remesh its own: both end with the same faces and positions, and each rebuilds its DDP wrapper."""
+    from torchir.training import optim_swap
+
+    rewrapped = []
+    monkeypatch.setattr(optim_swap, "rewrap_distributed", lambda trainer: rewrapped.append(trainer.is_global_zero))
     sent = {}
 
     def trainer(rank: int) -> SimpleNamespace:
@@ -202,6 +206,7 @@ def test_every_process_takes_process_zero_s_mesh(monkeypatch):
         if rank == 1:
             monkeypatch.setattr(remeshing, "_remesh", lambda *a: pytest.fail("process 1 remeshed its own mesh"))
         assert remeshing.apply_remesh_schedule(module, 1)
+    assert rewrapped == [True, False]
     faces = [m.mesh_faces(KEY) for m in modules]
     assert len(faces[0]) > 2 * SPHERE_FACES and torch.equal(faces[0], faces[1])
     assert torch.equal(modules[0].topology.meshes[KEY][1], faces[0])

@@ -68,10 +68,14 @@ def rewrap_distributed(trainer: Any) -> None:
     gradient reducer covers the parameters as they are now (the old wrapper's buckets hold the
     replaced tensors: without this, DDP silently averages nothing into the new one). A collective:
     every process calls it at the same step. The wrapper's constructor broadcasts rank 0's
-    parameters, so the processes start the new ones equal. Without DDP (one process) it does nothing."""
+    parameters, so the processes start the new ones equal. Without DDP (one process) it does nothing; another multi-process strategy is refused."""
     from lightning.pytorch.strategies import DDPStrategy
 
     strategy = getattr(trainer, "strategy", None)
-    if isinstance(strategy, DDPStrategy) and trainer.world_size > 1:
-        strategy.model = strategy.lightning_module
-        strategy.configure_ddp()
+    if trainer.world_size <= 1:
+        return
+    if not isinstance(strategy, DDPStrategy):
+        raise RuntimeError(f"a parameter replaced mid-run needs its gradients reduced anew, which torchir does for DDP "
+                           f"only; this run's strategy is {type(strategy).__name__}: use trainer.strategy: ddp")
+    strategy.model = strategy.lightning_module
+    strategy.configure_ddp()

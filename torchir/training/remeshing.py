@@ -211,7 +211,9 @@ def _replace(module: Any, key: str, vertices: torch.Tensor, faces: torch.Tensor,
 
     index = module.keys.index(key)
     old = module.scene_parameters[index]
+    warned = set(module.scene._warned)
     module.scene = replace_mesh(module.scene, module.mesh_id(key), vertices, faces)
+    module.scene._warned |= warned  # the run has shown its scene's warnings once: not again after each remesh
     positions = module.scene.get(key).detach().to(old.latent.device)
     if isinstance(old, LargeStepsParameter):
         new = LargeStepsParameter(key, LargeSteps(module.scene, key, lambda_=old.large_steps.lambda_), positions)
