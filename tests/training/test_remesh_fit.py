@@ -213,6 +213,25 @@ def test_every_process_takes_process_zero_s_mesh(monkeypatch):
     torch.testing.assert_close(modules[1].scene_values()[KEY], modules[0].scene_values()[KEY], rtol=0, atol=1e-5)
 
 
+def test_a_plain_mesh_parameter_is_rebuilt_at_the_remeshed_positions():
+    """Without Large Steps the parameter is the positions themselves: after the remesh its value
+    is the new mesh's vertex list (the scene's, the record's; not the config's ``init``, here
+    explicit positions of the old vertex list), with the faces of the scene's new mesh, and the
+    module's own Adam (``configure_optimizers``) steps the new tensor."""
+    start = read_mesh(TRUTH, device="cpu")[0].mul(0.9).tolist()
+    module = _module(parameters={KEY: {"init": start, "truth": TRUTH}}, optimizer="adam")
+    optimizer = module.configure_optimizers()
+    module._trainer = SimpleNamespace(is_global_zero=True, world_size=1, optimizers=[optimizer],
+                                      strategy=SimpleNamespace(broadcast=lambda obj, src=0: obj))
+    assert remeshing.apply_remesh_schedule(module, 1) and not remeshing.apply_remesh_schedule(module, 1)  # once a step
+    (p,) = module.scene_parameters
+    vertices, faces = module.topology.meshes[KEY]
+    assert type(p).__name__ == "SceneParameter" and p.latent.numel() == vertices.numel() > 2 * 3 * SPHERE_VERTICES
+    torch.testing.assert_close(p().detach().cpu(), vertices.reshape(-1), rtol=0, atol=0)
+    assert torch.equal(module.mesh_faces(KEY), faces) and optimizer.param_groups[0]["params"][0] is p.latent
+    assert remeshing.vertex_counts(module) == {f"vertices/{KEY}": float(len(vertices))}
+
+
 def test_restir_moves_to_the_remeshed_scene_with_its_reservoirs_dropped():
     """ReSTIR's reservoirs belong to the old surface: after a remesh (the built-in pig, 1106
     vertices, to twice its mean edge) the same sampler (its options kept) draws for the new
