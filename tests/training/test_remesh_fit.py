@@ -183,10 +183,10 @@ def test_every_process_takes_process_zero_s_mesh(monkeypatch):
     """Under DDP, process 0 remeshes and broadcasts its mesh; another process, whose positions
     here differ (a remesh of them would give another mesh), takes process 0's mesh and does not
     remesh its own: both end with the same faces and positions, and each rebuilds its DDP wrapper."""
-    from torchir.training import optim_swap
+    from torchir.training import param_swap
 
     rewrapped = []
-    monkeypatch.setattr(optim_swap, "rewrap_distributed", lambda trainer: rewrapped.append(trainer.is_global_zero))
+    monkeypatch.setattr(param_swap, "rewrap_distributed", lambda trainer: rewrapped.append(trainer.is_global_zero))
     sent = {}
 
     def trainer(rank: int) -> SimpleNamespace:
