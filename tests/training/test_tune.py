@@ -125,6 +125,25 @@ def test_a_loss_change_is_chosen_only_when_it_trains_clearly_faster():
     assert with_loss_choice(plain, rows(1.0, math.nan))[0] is plain
 
 
+def test_the_config_s_own_setting_wins_back_where_the_chosen_one_trains_worse():
+    """The training runs check the gradient score: the config's own setting replaces the chosen
+    one where its run lowered the error and the chosen one's rose or stayed, or 1.5x faster; not
+    where the chosen one's is within that factor, nor without a run of the config's own."""
+    base, chosen = Setting(4), Setting(8, {"type": "restir", "preset": "persistent"})
+    def rows(own, picked):
+        return [(chosen, {"status": "ran", "decrease_per_second": picked}), (base, {"status": "ran", "decrease_per_second": own})]
+
+    final, why = with_loss_choice(chosen, rows(0.02, -0.0099), base=base)
+    assert final is base and "rose" in why
+    assert with_loss_choice(chosen, rows(0.02, 0.0), base=base)[0] is base
+    final, why = with_loss_choice(chosen, rows(0.031, 0.02), base=base)
+    assert final is base and "1.6x faster" in why
+    assert with_loss_choice(chosen, rows(0.029, 0.02), base=base)[0] is chosen
+    assert with_loss_choice(chosen, rows(-0.01, -0.02), base=base)[0] is chosen  # neither fell: too short to compare
+    assert with_loss_choice(chosen, rows(0.02, -0.0099))[0] is chosen  # no base given
+    assert with_loss_choice(chosen, [(chosen, {"status": "ran", "decrease_per_second": -0.01})], base=base)[0] is chosen
+
+
 # ------------------------------------------------------------------------------- space
 def test_restir_only_for_direct_illumination_scenes():
     painting = _space()

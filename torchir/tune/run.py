@@ -119,7 +119,7 @@ def tune(config: str | Path, budget: Optional[float] = 600.0, out: Optional[str 
             trained.append((setting, row))
             progress(row)
         if chosen is not None:
-            final, why = with_loss_choice(chosen, trained)
+            final, why = with_loss_choice(chosen, trained, base=space.base)
     base_row = search.best.get(space.base.key, {})
     budget_seconds = base_row.get("seconds_per_step") if base_row.get("status") == "ran" else None
     settings = {**search.settings, **{s.key: s for s, _ in trained}}

@@ -201,26 +201,36 @@ def grid_search(space: Space, search: Search, long: int) -> Optional[Setting]:
 
 def training_candidates(space: Space, search: Search, chosen: Optional[Setting], full: bool) -> list[Setting]:
     """Settings to train briefly: the grid's every measured setting and its loss variants
-    (``full``), else the chosen one and the chosen one with each alternative loss (LOI; on the
+    (``full``), else the chosen one, the config's own (the training runs check the gradient
+    score: :func:`with_loss_choice`) and the chosen one with each alternative loss (LOI; on the
     best measured setting without a pixel sampler when the chosen one has one)."""
     if full:
         measured = [search.settings[k] for k, r in search.best.items() if r.get("status") == "ran"]
         return _unique([*measured, *space.loss_variants(measured)])
-    out = [] if chosen is None else [chosen]
+    out = [] if chosen is None else [chosen, space.base]
     whole = chosen if chosen is not None and not chosen.pixel else next((s for s in search.ranked() if not s.pixel), None)
     if whole is not None:
         out += space.loss_variants([whole])
     return _unique(out)
 
 
-def with_loss_choice(chosen: Setting, trained: Sequence[tuple[Setting, dict[str, Any]]], factor: float = 1.5) -> tuple[Setting, str]:
+def with_loss_choice(chosen: Setting, trained: Sequence[tuple[Setting, dict[str, Any]]], factor: float = 1.5,
+                     base: Optional[Setting] = None) -> tuple[Setting, str]:
     """The final setting: ``chosen``, or a loss-changing variant (``trained``: settings and their
     training rows) whose run lowered the error at least ``factor`` times faster than
     ``chosen``'s; when ``chosen``'s run did not lower the error at all the runs were too short to
-    compare, and ``chosen`` stays (gradient errors cannot compare them: the loss differs).
-    Returns it and why."""
+    compare, and ``chosen`` stays (gradient errors cannot compare them: the loss differs). The
+    config's own setting ``base`` (when trained) wins back where its run lowered the error and
+    ``chosen``'s did not, or ``factor`` times faster: the gradient score at the starting point
+    did not hold in training (an error kept from step to step grows stale as the parameters
+    move). Returns it and why."""
     rates = {s.key: r.get("decrease_per_second", math.nan) for s, r in trained if r.get("status") == "ran"}
     rate = rates.get(chosen.key, math.nan)
+    own = rates.get(base.key, math.nan) if base is not None and base.key != chosen.key else math.nan
+    if own > 0 and not math.isnan(rate) and rate * factor < own:
+        against = (f"while {chosen.label()}'s (the lowest window error) {'rose' if rate < 0 else 'did not fall'}" if rate <= 0
+                   else f"{own / rate:.1f}x faster than {chosen.label()}'s (the lowest window error)")
+        return base, f"the config's own setting: its training run lowered the error {against}"
     best, why = chosen, "the lowest window error"
     for setting, row in trained:
         other = rates.get(setting.key, math.nan)
