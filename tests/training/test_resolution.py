@@ -143,6 +143,22 @@ def test_density_and_rgb_albedo_grids_resize_together_and_both_get_gradients():
         assert p.latent.grad is not None and torch.isfinite(p.latent.grad).all() and float(p.latent.grad.abs().sum()) > 0
 
 
+def test_a_resize_rebuilds_the_ddp_wrapper_once_and_only_when_it_resizes(monkeypatch):
+    """Under DDP the reducer holds the tensors it was built with: after a step that resizes a grid
+    the wrapper is rebuilt (once for all the grids resized at that step); a step that resizes
+    nothing leaves it be."""
+    from torchir.training import param_swap
+
+    rewrapped = []
+    monkeypatch.setattr(param_swap, "rewrap_distributed", lambda trainer: rewrapped.append(trainer))
+    module = _module()
+    trainer = SimpleNamespace(optimizers=[module.configure_optimizers()], world_size=2)
+    module._trainer = trainer
+    assert apply_schedule(module, 1) == [] and rewrapped == []
+    assert apply_schedule(module, 2) == [KEY] and rewrapped == [trainer]
+    assert apply_schedule(module, 3) == [] and rewrapped == [trainer]
+
+
 def test_a_log_grid_resamples_its_value_and_per_entry_bounds_follow():
     """Transform log: the value (not the log) is resampled; per-entry bounds reach the new size."""
     module = _module(init="random", bounds=None, transform="log", seed=3)
@@ -240,3 +256,27 @@ def test_a_run_resumed_after_the_resize_continues_the_uninterrupted_run(run, tmp
                                _optimiser_state(run / "checkpoints" / "last.ckpt")["exp_avg_sq"], rtol=1e-5, atol=1e-12)
     steps = [int(r["step"]) for r in _rows(resumed_run)]
     assert steps == sorted(steps) and sorted(set(steps)) == [0, 1, 2, 3, 4, 5]
+
+
+@pytest.mark.slow  # two fresh processes (~40 s on 2 cores): `python3 -m pytest -m slow`
+def test_ddp_two_processes_resize_as_one_process(tmp_path):
+    """A resize under DDP (gloo, 2 processes, the 2 views of a step split between them) follows one
+    process's trajectory: both take the same grid and the new grid's gradients are averaged over
+    them (a DDP wrapper left on the 4³ tensor would not reduce the 8³ one's)."""
+    import os
+    import subprocess
+    import sys
+
+    args = ["fit", "--config", EXAMPLE, "--model.resolution", "8", "--model.scene_options", str(TINY).replace("'", ""),
+            "--model.parameters", f"{{{KEY}: {{resolution: {{4: 0, 8: 2}}, lr: 0.05}}}}", "--model.spp", "2",
+            "--model.preview_spp", "1", "--data.target_spp", "4", "--data.views_per_step", "2", "--trainer.max_steps", "4",
+            "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
+    assert cli.main([*args, "--trainer.logger.init_args.save_dir", str(tmp_path / "one")]) == 0
+    ddp = ["--trainer.strategy", "ddp", "--trainer.devices", "2", "--trainer.accelerator", "cpu"]
+    result = subprocess.run([sys.executable, "-m", "torchir", *args, "--trainer.logger.init_args.save_dir", str(tmp_path / "two"), *ddp],
+                            capture_output=True, text=True, timeout=600, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert result.returncode == 0, result.stderr[-3000:]
+    one = _latents(_run_dir(tmp_path / "one", name="volume_from_views") / "checkpoints" / "last.ckpt")["scene_parameters.0.latent"]
+    two = _latents(_run_dir(tmp_path / "two", name="volume_from_views") / "checkpoints" / "last.ckpt")["scene_parameters.0.latent"]
+    assert tuple(one.shape) == (8, 8, 8, 1)
+    torch.testing.assert_close(two, one, rtol=1e-4, atol=1e-6)

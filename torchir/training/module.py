@@ -595,7 +595,6 @@ class InverseRenderingModule(pl.LightningModule):
         strategy = getattr(self.trainer, "strategy", None)  # (tests drive setup with a stand-in trainer)
         if strategy is not None:
             _check_trainer_device(strategy.root_device)
-            coarse_to_fine.check_single_process(self, self.trainer.world_size)
         datamodule = getattr(self.trainer, "datamodule", None)
         synthetic = datamodule is None or getattr(datamodule, "synthetic", True)
         if self.pixel_mode and getattr(datamodule, "saturation", None) is not None:

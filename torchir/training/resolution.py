@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from ..volumes import check_grid_shape, resample
+from . import param_swap
 from .param_swap import map_state, swap_parameter
 
 __all__ = ["ResolutionSchedule", "parse_schedule", "apply_schedule", "match_checkpoint", "on_truth_grids", "resize_parameter"]
@@ -158,13 +159,6 @@ def _resize(module: Any, index: int, shape: Shape3, values: bool) -> None:
             swap_parameter(optimizer, old, new, moved)
 
 
-def check_single_process(module: Any, world_size: int) -> None:
-    """Refuse a schedule under DDP: its reducer holds the parameters it was built with."""
-    if module.resolutions and world_size > 1:
-        raise ValueError(f"parameters {sorted(module.resolutions)} have a resolution schedule, which replaces their tensors "
-                         f"mid-run: run them in one process (trainer.devices: 1), or drop resolution")
-
-
 def apply_schedule(module: Any, step: int) -> list[str]:
     """Resize every scheduled parameter of ``module`` whose grid is not the size step ``step``
     renders at (``module.resolutions``: ``{key: ResolutionSchedule}``); the resized keys."""
@@ -177,6 +171,8 @@ def apply_schedule(module: Any, step: int) -> list[str]:
         if tuple(module.scene_parameters[index].latent.shape[:3]) != shape:
             _resize(module, index, shape, values=True)
             resized.append(key)
+    if resized and module._trainer is not None:  # under DDP: a reducer over the new tensors (every process resizes alike)
+        param_swap.rewrap_distributed(module._trainer)
     return resized
 
 
