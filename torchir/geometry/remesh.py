@@ -100,14 +100,8 @@ def remesh_scene(scene: Any, shape: str, vertices: Any = None, edge_length: floa
         on the render device; its faces are ``new_scene.get("<shape>.faces")``.
     """
     from .. import backend
-    from ..scene import Scene
 
-    if not isinstance(scene, Scene):
-        raise TypeError(f"remesh_scene takes a torchir.Scene, got {type(scene).__name__}")
-    old = scene_mesh(scene, shape)
-    name = shape_id(shape)
-    if old.emitter() is not None:
-        raise ValueError(f"mesh {name!r} is an area light: remeshing emitters is not supported")
+    old, name = _editable_mesh(scene, shape, "remesh_scene")
     if vertices is None:
         vertices = scene.get(f"{name}.vertex_positions")
     v = as_vertices(vertices)
@@ -118,6 +112,20 @@ def remesh_scene(scene: Any, shape: str, vertices: Any = None, edge_length: floa
     new = replace_mesh(scene, name, v_new, f_new)
     positions = torch.as_tensor(v_new.astype(np.float32).ravel(), device=torch.device(backend.device()))
     return new, positions
+
+
+def _editable_mesh(scene: Any, shape: str, caller: str) -> tuple[Any, str]:
+    """``(mesh, id)`` of the mesh ``shape`` of the torchir ``scene`` that ``caller`` may replace
+    (a ``TypeError`` for anything but a Scene, a ``ValueError`` for an area light)."""
+    from ..scene import Scene
+
+    if not isinstance(scene, Scene):
+        raise TypeError(f"{caller} takes a torchir.Scene, got {type(scene).__name__}")
+    old = scene_mesh(scene, shape)
+    name = shape_id(shape)
+    if old.emitter() is not None:
+        raise ValueError(f"mesh {name!r} is an area light: remeshing emitters is not supported")
+    return old, name
 
 
 def replace_mesh(scene: Any, shape: str, vertices: Any, faces: Any) -> Any:
@@ -143,12 +151,7 @@ def replace_mesh(scene: Any, shape: str, vertices: Any, faces: Any) -> Any:
 
     from ..scene import Scene
 
-    if not isinstance(scene, Scene):
-        raise TypeError(f"replace_mesh takes a torchir.Scene, got {type(scene).__name__}")
-    old = scene_mesh(scene, shape)
-    name = shape_id(shape)
-    if old.emitter() is not None:
-        raise ValueError(f"mesh {name!r} is an area light: remeshing emitters is not supported")
+    old, name = _editable_mesh(scene, shape, "replace_mesh")
     v_new = host_positions(as_vertices(vertices))
     f_new = as_faces(faces, v_new.shape[0])
     if not np.isfinite(v_new).all():
