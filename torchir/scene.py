@@ -545,6 +545,8 @@ class Scene:
             grad_names: the names to differentiate.
             owner: an opaque token (the render op) for :meth:`owns_live_binding`.
         """
+        for other in list(_SCENES_WITH_LIVE_GRADS):
+            other.drop_live_grads()  # this scene's kernels would trace the others' grad-enabled data
         params = self.params
         moved = [name[: -len(".vertex_positions")] for name in values.keys() | self._overridden if name.endswith(".vertex_positions")]
         welds = self._welds(moved)  # before Mitsuba's first update recomputes the loaded normals
@@ -570,6 +572,8 @@ class Scene:
             params.update()
         self._overridden = set(values)
         self._owner = owner if fresh else None
+        if fresh:
+            _SCENES_WITH_LIVE_GRADS.add(self)
         return fresh
 
     def _welds(self, mesh_ids: list[str]) -> list:
@@ -598,6 +602,29 @@ class Scene:
         """Mark ``owner``'s AD edges as consumed (a backward traversal clears them)."""
         if self._owner is owner:
             self._owner = None
+
+    def drop_live_grads(self) -> None:
+        """Disable gradients, in place, on every grad-enabled value bound in the scene.
+
+        Mitsuba's symbolic calls trace every registered shape of the process, not only this
+        scene's: a mesh left with grad-enabled positions makes a later ``prbvolpath`` adjoint of
+        *another* scene fail to compile and abort the process. A render op whose binding is
+        dropped re-binds at its backward (see :meth:`owns_live_binding`). No ``params.update()``
+        is needed: the values stay, only their AD edges go. Only the bound values themselves:
+        Mitsuba takes a value changed in place (normals derived from the positions) for the
+        user's own, and would stop recomputing it from the positions at the next update.
+        """
+        self._owner = None
+        _SCENES_WITH_LIVE_GRADS.discard(self)
+        for name in self._overridden & set(self.params.keys()):
+            value = self.params[name]
+            if dr.is_diff_v(value) and dr.grad_enabled(value):
+                dr.disable_grad(value)
+
+
+# Scenes whose bound values are grad-enabled (see Scene.drop_live_grads); weak, so a scene that
+# goes away leaves the set by itself.
+_SCENES_WITH_LIVE_GRADS: "weakref.WeakSet[Scene]" = weakref.WeakSet()
 
 
 def _check_grid_shape(name: str, got: tuple[int, ...], loaded: tuple[int, ...]) -> None:

@@ -25,8 +25,8 @@ def _grid(shape, seed=0) -> torch.Tensor:
 
 def _mitsuba_eval(grid: torch.Tensor, shape) -> torch.Tensor:
     """Mitsuba's own gridvolume (trilinear, clamp) evaluated at the voxel centres of ``shape``."""
-    volume = mi.load_dict({"type": "gridvolume", "grid": mi.VolumeGrid(grid.numpy())})
-    points = voxel_centres(shape).reshape(-1, 3).numpy()
+    volume = mi.load_dict({"type": "gridvolume", "grid": mi.VolumeGrid(grid.cpu().numpy())})
+    points = voxel_centres(shape).reshape(-1, 3).cpu().numpy()
     it = dr.zeros(mi.Interaction3f, points.shape[0])
     it.p = mi.Point3f(*(points[:, i].astype(np.float32) for i in range(3)))
     return torch.from_numpy(np.array(volume.eval_1(it))).reshape(*shape, 1)
@@ -59,8 +59,8 @@ def test_resample_upsampling_equals_dr_resample_linear_and_dr_upsample_of_a_text
     a linear, clamped Texture3f (Mitsuba's volume tutorial) give the same grid."""
     grid, new = _grid((4, 5, 3), seed=1), (8, 10, 9)
     ours = resample(grid, new)
-    by_resample = torch.from_numpy(np.array(dr.resample(mi.TensorXf(grid.numpy()), (*new, 1), filter="linear")))
-    texture = mi.Texture3f(mi.TensorXf(grid.numpy()), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
+    by_resample = torch.from_numpy(np.array(dr.resample(mi.TensorXf(grid.cpu().numpy()), (*new, 1), filter="linear")))
+    texture = mi.Texture3f(mi.TensorXf(grid.cpu().numpy()), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
     with pytest.warns(DeprecationWarning):
         by_upsample = torch.from_numpy(np.array(dr.upsample(texture, shape=new).tensor()))
     torch.testing.assert_close(ours, by_resample, rtol=0, atol=2e-6)
@@ -93,7 +93,7 @@ def volume_scenes():
     fine = _grid((8, 8, 8), seed=2) * 0.3
     coarse_dict = build(resolution=8, grid=4, views=1, max_depth=3)
     fine_dict = build(resolution=8, grid=4, views=1, max_depth=3)
-    fine_dict["object"]["interior"]["sigma_t"]["grid"] = mi.VolumeGrid(fine.numpy())
+    fine_dict["object"]["interior"]["sigma_t"]["grid"] = mi.VolumeGrid(fine.cpu().numpy())
     return torchir.Scene.from_dict(coarse_dict), torchir.Scene.from_dict(fine_dict), fine
 
 

@@ -99,7 +99,7 @@ def test_the_resize_resamples_the_value_and_adam_s_moments_and_keeps_the_step():
     p = module.scene_parameters[0]
     assert tuple(p.latent.shape) == (4, 4, 4, 1) and bool((p() == 0.002).all())
     opt = module.configure_optimizers()
-    module._trainer = SimpleNamespace(optimizers=[opt])
+    module._trainer = SimpleNamespace(optimizers=[opt], world_size=1)
     torch.manual_seed(0)
     for _ in range(2):
         p.latent.grad = torch.randn_like(p.latent) * 1e-3
@@ -134,7 +134,7 @@ def test_density_and_rgb_albedo_grids_resize_together_and_both_get_gradients():
         parameters={KEY: {"init": 0.05, "bounds": [1e-6, 1.0], "resolution": {4: 0, 8: 2}}, albedo: {"init": 0.5, **schedule}},
     )
     assert [tuple(p.latent.shape) for p in module.scene_parameters] == [(4, 4, 4, 1), (4, 4, 4, 3)]
-    module._trainer = SimpleNamespace(optimizers=[module.configure_optimizers()])
+    module._trainer = SimpleNamespace(optimizers=[module.configure_optimizers()], world_size=1)
     assert sorted(apply_schedule(module, 2)) == sorted([KEY, albedo])
     assert [tuple(p.latent.shape) for p in module.scene_parameters] == [(8, 8, 8, 1), (8, 8, 8, 3)]
     image = render(module.scene, module.scene_values(), spp=4, seed=0)
@@ -164,7 +164,7 @@ def test_a_log_grid_resamples_its_value_and_per_entry_bounds_follow():
     module = _module(init="random", bounds=None, transform="log", seed=3)
     p = module.scene_parameters[0]
     before = p().detach()
-    module._trainer = SimpleNamespace(optimizers=[])
+    module._trainer = SimpleNamespace(optimizers=[], world_size=1)
     apply_schedule(module, 2)
     torch.testing.assert_close(p().detach(), resample(before, (8, 8, 8)), rtol=1e-5, atol=1e-7)
     bounded = _module(bounds=[[1e-6], [0.5]])

@@ -34,7 +34,7 @@ from torchir.training.cli import (
 from torchir.training.data import ViewDataModule
 from torchir.training.module import InverseRenderingModule, NonFiniteLossError
 
-FIELDS = ["init", "bounds", "lr", "transform", "seed", "truth", "parametrization"]
+FIELDS = ["init", "bounds", "lr", "transform", "seed", "truth", "parametrization", "resolution"]
 SET_HELP = (
     f"--set takes KEY.FIELD=VALUE with FIELD one of {FIELDS}, e.g. --set 'red.reflectance.value.init=0.3'; got "
 )
@@ -252,7 +252,8 @@ def bare_cli(**attrs) -> TorchirCLI:
     return obj
 
 
-DEFAULTS = {"init": 0.5, "bounds": None, "lr": None, "transform": "none", "seed": 0, "truth": None, "parametrization": None}
+DEFAULTS = {"init": 0.5, "bounds": None, "lr": None, "transform": "none", "seed": 0, "truth": None, "parametrization": None,
+            "resolution": None}
 
 
 def test_merge_parameter_sets():

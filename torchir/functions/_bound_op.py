@@ -49,6 +49,7 @@ class BoundRenderOp(dr.CustomOp):
             name: dr.grad(self.fresh[name]) if name in self.grad_names else _zeros_like(value)
             for name, value in self.values.items()
         }
+        self.scene.drop_live_grads()  # nothing grad-enabled stays bound (see Scene.drop_live_grads)
         self.set_grad_in("values", grads)
 
     def forward(self) -> None:

@@ -141,12 +141,22 @@ def _check_projective_silhouettes(scene: Scene, grad_names: frozenset[str], sens
                     f"meshes\"). {_band_advice(scene, shape, sensor)}",
                 )
             if _REFUSED[key]:
+                reason, remedy = _REFUSED[key]
                 raise ValueError(
-                    f"{shape.id()!r}: {_REFUSED[key]}; {type(scene.integrator).__name__}'s primary silhouette term would be "
-                    f"wrong there. Render through ReSTIR (render(..., sampler=torchir.samplers.ReSTIRSampler(scene)): it "
-                    f"samples these silhouettes itself), or give the mesh smooth vertex normals, a two-sided material "
-                    f"('twosided' BSDF) or a closed surface."
+                    f"{shape.id()!r}: {reason}; {type(scene.integrator).__name__}'s primary silhouette term would be "
+                    f"wrong there. {_restir_advice(scene)}{remedy}."
                 )
+
+def _restir_advice(scene: Scene) -> str:
+    """"Render through ReSTIR, or" where ReSTIR takes the scene, else why it cannot."""
+    from ..integrators.restir_di import check_scene
+
+    try:
+        check_scene(scene.mi_scene)
+    except ValueError as refusal:
+        return f"torchir's ReSTIR sampler, which samples these silhouettes itself, cannot take this scene ({refusal}): "
+    return ("Render through ReSTIR (render(..., sampler=torchir.samplers.ReSTIRSampler(scene)): it samples these "
+            "silhouettes itself), or ")
 
 
 def _band_advice(scene: Scene, mesh: mi.Mesh, sensor: int) -> str:
@@ -185,8 +195,9 @@ def _in_view(sensor_obj: mi.Sensor, mesh: mi.Mesh) -> bool:
     return bool(dr.any(ds.pdf > 0))
 
 
-def _projective_silhouette_problem(scene: Scene, mesh: mi.Mesh, sensor: int) -> str | None:
-    """Why Mitsuba's primary silhouettes of ``mesh`` seen by ``sensor`` are wrong, or None."""
+def _projective_silhouette_problem(scene: Scene, mesh: mi.Mesh, sensor: int) -> tuple[str, str] | None:
+    """``(why, what fixes it)`` where Mitsuba's primary silhouettes of ``mesh`` seen by ``sensor``
+    are wrong, else None."""
     from ..integrators._mesh_edges import back_seen_past_border, edges_of, mitsuba_silhouettes_wrong
 
     if not mitsuba_silhouettes_wrong(mesh):
@@ -196,11 +207,12 @@ def _projective_silhouette_problem(scene: Scene, mesh: mi.Mesh, sensor: int) -> 
         return None  # outside the view: only its shadow is seen
     if edges_of(mesh).crease.any():
         return ("the sensor sees this flat-shaded or hard-edged mesh, whose shading jumps at its creases, which Mitsuba's "
-                "estimator does not sample (measured on a cube's pixels: -7.8 against -4.6 by finite differences)")
+                "estimator does not sample (measured on a cube's pixels: -7.8 against -4.6 by finite differences)",
+                "give the mesh smooth vertex normals (one normal per position, as a smooth-shaded export writes them)")
     bsdf = mesh.bsdf()
     one_sided = bsdf is None or not bsdf.flags() & int(mi.BSDFFlags.BackSide)
     viewpoint = np.array(sensor_obj.world_transform() @ mi.ScalarPoint3f(0.0))
     if one_sided and back_seen_past_border(mesh, viewpoint, scene.mi_scene):
         return ("the sensor sees the back of its one-sided material past an open border, which Mitsuba shades as "
-                "the front")
+                "the front", "give the mesh a two-sided material ('twosided' BSDF) or close its surface")
     return None
