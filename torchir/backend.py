@@ -17,6 +17,7 @@ import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
@@ -232,3 +233,10 @@ def aligned_host_array(values: np.ndarray, alignment: int = 64) -> np.ndarray:
     out = buffer[start : start + values.nbytes].view(values.dtype).reshape(values.shape)
     out[...] = values
     return out
+
+
+def jit_array(array_type: type, values: np.ndarray) -> Any:
+    """``array_type(values)`` (a Dr.Jit array such as ``mi.UInt32``) made from an aligned host
+    copy (:func:`aligned_host_array`): the kernels reading it are the same whatever NumPy's
+    allocation, so a step that makes it afresh compiles nothing new."""
+    return array_type(aligned_host_array(np.ascontiguousarray(values)))

@@ -124,6 +124,7 @@ class Scene:
         self.params = mi.traverse(mi_scene)
         self._info: dict[str, ParameterInfo] = {}
         self._base: dict[str, Any] = {}  # load-time values of the parameters a render overrode
+        self._loaded_normals: dict[str, Any] = {}  # a moved mesh's load-time normals, by its positions' name
         self._overridden: set[str] = set()
         self._owner: object | None = None  # the render op whose grad-enabled values are bound
         self._warned: set[str] = set()
@@ -548,16 +549,22 @@ class Scene:
         for other in list(_SCENES_WITH_LIVE_GRADS):
             other.drop_live_grads()  # this scene's kernels would trace the others' grad-enabled data
         params = self.params
-        moved = [name[: -len(".vertex_positions")] for name in values.keys() | self._overridden if name.endswith(".vertex_positions")]
+        moved = [name[: -len(".vertex_positions")] for name in values if name.endswith(".vertex_positions")]
         welds = self._welds(moved)  # before Mitsuba's first update recomputes the loaded normals
+        restored = []  # meshes back at their loaded positions: their loaded normals too, after the update
         for name in self._overridden - values.keys():
             params[name] = self._base.pop(name)
             params.set_dirty(name)
+            if name.endswith(".vertex_positions") and name in self._loaded_normals:
+                restored.append(name[: -len(".vertex_positions")])
         fresh: dict[str, Any] = {}
         for name, value in values.items():
             if name not in self._base:
                 # A new Python object: SceneParameters assigns into the existing one in place.
                 self._base[name] = type(params[name])(params[name])
+                normals = f"{name[: -len('.vertex_positions')]}.vertex_normals"
+                if name.endswith(".vertex_positions") and normals in params and dr.width(params[normals]) > 0:
+                    self._loaded_normals[name] = type(params[normals])(params[normals])
             value = type(value)(dr.detach(value))
             if name in grad_names:
                 dr.enable_grad(value)
@@ -565,10 +572,13 @@ class Scene:
             params[name] = value
             params.set_dirty(name)
         params.update()
-        if welds:  # smooth across uv seams, as the loaded mesh was (see torchir.welding.group_normals)
-            for mesh, weld in welds:
-                params[f"{mesh.id()}.vertex_normals"] = group_normals(mesh, weld)
-                params.set_dirty(f"{mesh.id()}.vertex_normals")
+        normals = {f"{mesh.id()}.vertex_normals": group_normals(mesh, weld) for mesh, weld in welds}  # smooth across
+        # uv seams, as the loaded mesh was (see torchir.welding.group_normals); a restored mesh: as loaded
+        normals.update({f"{mesh}.vertex_normals": self._loaded_normals.pop(f"{mesh}.vertex_positions") for mesh in restored})
+        for name, value in normals.items():
+            params[name] = type(value)(value)
+            params.set_dirty(name)
+        if normals:
             params.update()
         self._overridden = set(values)
         self._owner = owner if fresh else None

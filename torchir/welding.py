@@ -30,6 +30,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .backend import jit_array
+
 __all__ = ["weld_map", "mesh_weld", "weld_of", "keep_loaded_welds", "MeshWeld", "WeldedFaces", "moving_meshes", "group_normals"]
 
 
@@ -69,6 +71,25 @@ class MeshWeld:
             self.group = np.arange(len(self.rep), dtype=np.uint32)
         self.merges = bool(np.any(self.group != np.arange(len(self.group))))
         self.edges: Any = None  # the mesh's edge table, built on first use (integrators._mesh_edges.edges_of)
+        self._jit: dict[str, Any] = {}
+
+    def jit(self, name: str) -> Any:
+        """A Dr.Jit array of this topology, made once and kept (so every step's kernels read the
+        same buffer): ``"welded_faces"`` (3F,); ``"group"`` (V,); ``"corner_k"`` (F,), the
+        position offsets ``3 * faces[:, k]``; ``"corner_group_k"`` (F,), ``group[faces[:, k]]``."""
+        if name not in self._jit:
+            if name == "welded_faces":
+                values = self.welded_faces.ravel()
+            elif name == "group":
+                values = self.group
+            elif name.startswith("corner_group_"):
+                values = self.group[self.faces[:, int(name[-1])]]
+            elif name.startswith("corner_"):
+                values = 3 * self.faces[:, int(name[-1])]
+            else:
+                raise KeyError(name)
+            self._jit[name] = jit_array(mi.UInt32, values.astype(np.uint32))
+        return self._jit[name]
 
     @property
     def welded(self) -> bool:
@@ -93,10 +114,9 @@ def group_normals(mesh: mi.Mesh, weld: MeshWeld) -> mi.Float:
     # explicit gathers: through dr.unravel, Dr.Jit 1.5's reverse mode dropped the positions'
     # other uses (d/dt of sum(P) + sum(unravel(P).x) came out 15 where it is 20)
     positions = mesh.vertex_positions_buffer()
-    f = weld.faces
 
     def corner(k: int) -> mi.Vector3f:
-        index = mi.UInt32(3 * f[:, k].astype(np.uint32))
+        index = weld.jit(f"corner_{k}")
         return mi.Vector3f(*(dr.gather(mi.Float, positions, index + axis) for axis in range(3)))
 
     v = [corner(0), corner(1), corner(2)]
@@ -104,10 +124,10 @@ def group_normals(mesh: mi.Mesh, weld: MeshWeld) -> mi.Float:
     total = [dr.zeros(mi.Float, len(weld.group)) for _ in range(3)]
     for k in range(3):  # weighted by the face's angle at the corner, as Mitsuba weighs them
         angle = dr.safe_acos(dr.dot(dr.normalize(v[(k + 1) % 3] - v[k]), dr.normalize(v[(k + 2) % 3] - v[k])))
-        group = mi.UInt32(weld.group[f[:, k]].copy())
+        group = weld.jit(f"corner_group_{k}")
         for axis in range(3):
             dr.scatter_add(total[axis], n[axis] * angle, group)
-    group = mi.UInt32(weld.group)
+    group = weld.jit("group")
     summed = mi.Vector3f(*(dr.gather(mi.Float, t, group) for t in total))
     return dr.ravel(dr.normalize(summed))
 
@@ -203,7 +223,7 @@ class WeldedFaces:
             return self
         for mesh, weld in self.todo:
             name = mesh.id()
-            self._swap(f"{name}.faces", mi.UInt32(weld.welded_faces.ravel()))
+            self._swap(f"{name}.faces", weld.jit("welded_faces"))
             if mesh.has_vertex_normals():  # flat: face normals; smooth: its group normals, below
                 self._swap(f"{name}.vertex_normals", dr.zeros(mi.Float, 0) if weld.flat else self.params[f"{name}.vertex_normals"])
         self._update_faces()

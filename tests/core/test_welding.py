@@ -170,3 +170,32 @@ def test_a_scene_mesh_keeps_the_weld_it_was_loaded_with_however_its_vertices_mov
     scene.params.update()
     assert len(np.unique(weld_map(spread.astype(np.float32)))) == 185  # no two copies coincide now
     assert mesh_weld(mesh) is weld and scene.mesh_weld(_load(exported["uv_sphere"]["obj"])) is None  # not this scene's
+
+
+@pytest.mark.parametrize("fmt", ["ply", "obj"])
+def test_a_mesh_gets_its_loaded_normals_back_when_a_render_unbinds_its_positions(exported, fmt):
+    """``render(scene, {})`` after a render that moved a mesh renders the loaded mesh: its file's
+    normals, not the ones recomputed at the restored positions (before, the update left normals
+    recomputed over the faces, seams creased and weighted otherwise than the exporter's)."""
+    import torch
+
+    import torchir
+    from torchir.functions import render
+
+    scene = torchir.Scene.from_dict({
+        "type": "scene", "integrator": {"type": "direct"},
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0.4, 0.5, 2.5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 12, "height": 12, "rfilter": {"type": "box"}}},
+        "sphere": {"type": fmt, "filename": str(exported["uv_sphere"][fmt]), "bsdf": {"type": "diffuse"}},
+        "light": {"type": "point", "position": [1.0, 2.0, 2.0], "intensity": {"type": "rgb", "value": 8.0}},
+    })
+    key, normals = "sphere.vertex_positions", "sphere.vertex_normals"
+    loaded_normals = np.array(scene.params[normals])
+    before = render(scene, {}, spp=4, seed=3)
+    moved = scene.get(key) * torch.tensor([1.2, 0.9, 1.0]).repeat(185)
+    render(scene, {key: moved}, spp=4, seed=3)
+    assert not np.allclose(np.array(scene.params[normals]), loaded_normals, atol=1e-3)  # bound: the moved mesh's
+    after = render(scene, {}, spp=4, seed=3)
+    np.testing.assert_array_equal(np.array(scene.params[normals]), loaded_normals)
+    torch.testing.assert_close(after, before, rtol=0, atol=0)
