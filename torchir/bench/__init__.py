@@ -35,6 +35,8 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "scaleup": "torchir.bench.scaleup",
     "soak": "torchir.bench.soak",
     "jpeg": "torchir.bench.jpeg",
+    "shape_tutorial": "torchir.bench.shape_tutorial",
+    "mesh_step": "torchir.bench.mesh_step",
 }
 ALL = tuple(SUITES)
 
