@@ -109,7 +109,7 @@ class Problem:
     """One mesh's gradient problem: the user's scene for each path, the welded reference, the
     adjoint and the displaced vertex (as a mask over the user's vertices and the welded ones)."""
 
-    def __init__(self, path: str | Path, resolution: int, face_normals: bool = False) -> None:
+    def __init__(self, path: str | Path, resolution: int, face_normals: bool = False, vertex: int | None = None) -> None:
         self.name = Path(path).name + (" (face_normals)" if face_normals else "")
         self.resolution = resolution
         self.spec = mesh_spec(path, face_normals)
@@ -120,7 +120,8 @@ class Problem:
         ramp = torch.linspace(-1.0, 1.0, resolution, device=torchir.backend.device())
         self.adjoint = (ramp[None, :, None] + 0.5).expand(3, resolution, resolution).contiguous()
         self._scenes: dict[str, torchir.Scene] = {}
-        self.vertex = self._strongest_vertex()  # index into the welded mesh
+        # index into the welded mesh: given, or the one whose derivative is largest (a ReSTIR render)
+        self.vertex = self._strongest_vertex() if vertex is None else vertex
         rep_of_welded = self.keep[self.vertex]
         self.user_vertex_mask = torch.from_numpy(weld.rep == rep_of_welded).to(torchir.backend.device())
 
@@ -155,10 +156,11 @@ class Problem:
         vertex = (vertex_mask[:, None].float() * up).reshape(-1)
         return translation, vertex
 
-    def reference(self, spp: int, seeds: int, h: float | None = None) -> dict[str, tuple[float, float]]:
+    def reference(self, spp: int, seeds: int, h: float | None = None,
+                  only: str | None = None) -> dict[str, tuple[float, float]]:
         """Central differences of the user's mesh with every copy of a vertex moved together (the
         welded motion; rendered as torchir renders it, so normals per group), Mitsuba's ``direct``
-        at ``spp``, the same seed both sides: ``{direction: (mean, standard error)}``. The step
+        at ``spp``, the same seed both sides: ``{direction: (mean, standard error)}`` (``only``: that direction alone). The step
         ``h`` defaults to 2 % of the median edge: on a fine sphere (edges 0.06) a step of 0.01 put
         one vertex's difference at -2.97 against -4.33 at 0.001."""
         from torchir.functions import render
@@ -171,6 +173,8 @@ class Problem:
             h = 0.02 * float(np.median(np.linalg.norm(p[faces[:, 1]] - p[faces[:, 0]], axis=1)))
         out = {}
         for name, d in zip(("translation", "vertex"), self.directions(self.user_vertex_mask, v0.numel() // 3)):
+            if only is not None and name != only:
+                continue
             fd = [float(((render(scene, {KEY: v0 + h * d}, spp=spp, seed=s) - render(scene, {KEY: v0 - h * d}, spp=spp, seed=s))
                          * self.adjoint).sum()) / (2 * h) for s in range(seeds)]
             out[name] = (float(np.mean(fd)), float(np.std(fd, ddof=1) / math.sqrt(seeds)))
