@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from torchir.bench import environment, save_results
+from torchir.bench import environment, write_outputs
 from torchir.bench._common import fmt, markdown_table
 from torchir.bench.shape_tutorial import (LAMBDA, LR, VIEWS, Assets, fill_sizes, run_assets, scene_dict, sensor_dicts,
                                           tutorial_parser)
@@ -53,26 +53,17 @@ KEY = "shape.vertex_positions"
 
 
 def welded_mesh(path: Path) -> tuple[Any, np.ndarray]:
-    """The mesh at ``path`` welded by hand (a Mitsuba mesh, one vertex per position, smooth
-    normals), and for each vertex of the file its welded index."""
+    """The mesh at ``path`` welded by hand (:func:`torchir.bench.mesh_gradients.welded_copy`: one
+    vertex per position, smooth normals), id ``shape``, and for each vertex of the file its welded index."""
     import mitsuba as mi
 
-    from torchir.welding import weld_map
+    from torchir.bench.mesh_gradients import welded_copy
+    from torchir.welding import mesh_weld
 
     loaded = mi.load_dict({"type": "ply", "filename": str(path)})
-    p = np.array(loaded.vertex_positions_buffer(), np.float32).reshape(-1, 3)
-    faces = np.array(loaded.faces_buffer(), np.int64).reshape(-1, 3)
-    rep = weld_map(p)
-    reps, index = np.unique(rep, return_inverse=True)
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict({"type": "diffuse"})
-    mesh = mi.Mesh("shape", len(reps), len(faces), props, has_vertex_normals=True, has_vertex_texcoords=False)
-    buffers = mi.traverse(mesh)
-    buffers["vertex_positions"] = mi.Float(p[reps].ravel())
-    buffers["faces"] = mi.UInt32(index[faces].astype(np.uint32).ravel())
-    buffers.update()
+    mesh = welded_copy(loaded)
     mesh.set_id("shape")
-    return mesh, index.ravel()
+    return mesh, np.unique(mesh_weld(loaded).rep, return_inverse=True)[1].ravel()
 
 
 class MitsubaArm:
@@ -245,22 +236,12 @@ def summary(results: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def plot(results: dict[str, Any], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name in ARMS:
-        ax.plot(np.array(results["steps"][name]["steps"]) * 1e3, label=name)
-    ax.set_xlabel("step (interleaved)")
-    ax.set_ylabel("ms")
-    ax.set_yscale("log")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def draw_steps(results: dict[str, Any]) -> Callable[[Any], None]:
+    """Each arm's step times in the order they ran (for :func:`torchir.bench.write_outputs`)."""
+    def draw(ax: Any) -> None:
+        for name in ARMS:
+            ax.plot(np.array(results["steps"][name]["steps"]) * 1e3, label=name)
+    return draw
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
@@ -292,7 +273,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     sensors = [mi.load_dict(s) for s in sensor_specs]
     refs = [read_target(t) for t in write_targets(assets, args.resolution, 64, out)]
     welded, weld_index = welded_mesh(assets.start)
-    arms: dict[str, Callable | Any] = {
+    arms: dict[str, Any] = {
         "mitsuba": MitsubaArm(assets.start, assets, sensors, refs, args.spp),
         "mitsuba welded": MitsubaArm(welded, assets, sensors, refs, args.spp),
         "torchir": TorchirArm(assets, sensor_specs, refs, args.spp),
@@ -303,10 +284,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     results = {"settings": {"assets": assets.label, "resolution": args.resolution, "spp": args.spp,
                             "iterations": args.iterations, "repeats": args.repeats, "reference_spp": args.reference_spp},
                "steps": steps, "gradients": grads, "environment": environment()}
-    text = summary(results)
-    print(text)
-    save_results(out, results, text)
-    plot(results, out / "step_times.png")
+    write_outputs(out, summary(results), results, draw_steps(results), "step_times.png", "step (interleaved)", "ms", log_y=True)
     return results
 
 

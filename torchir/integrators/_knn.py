@@ -26,7 +26,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..backend import aligned_host_array
+from ..backend import jit_array
 from .restir_options import NN_BACKENDS
 
 __all__ = ["knn", "knn_kdtree", "knn_grid", "knn_screen", "have_scipy", "NeighbourSearch", "ScreenLayout"]
@@ -48,8 +48,8 @@ def _to_numpy(p: mi.Point3f) -> np.ndarray:
 
 def _columns(idx: np.ndarray, ok: np.ndarray, k: int) -> tuple[list[mi.UInt32], list[mi.Bool]]:
     return (
-        [mi.UInt32(aligned_host_array(idx[:, i].astype(np.uint32))) for i in range(k)],
-        [mi.Bool(aligned_host_array(ok[:, i])) for i in range(k)],
+        [jit_array(mi.UInt32, idx[:, i].astype(np.uint32)) for i in range(k)],
+        [jit_array(mi.Bool, ok[:, i]) for i in range(k)],
     )
 
 
