@@ -42,7 +42,7 @@ SUITE_TESTS = {  # suite -> the test module that runs it (at a smaller size), un
     "adaptive": "bench/test_bench_adaptive",
 }
 NOT_RUN = {"overhead", "denoiser", "loi", "soak", "jpeg", "all",  # minutes each: `torchir bench all --quick`, not CI
-           "shape_tutorial", "mesh_step"}  # 35-45 s each at --quick; their bookkeeping: bench/test_bench_shape
+           "shape_tutorial", "mesh_step", "volume_tutorial"}  # 35-75 s each at --quick; bookkeeping: bench/test_bench_shape, _volume
 ELSEWHERE = {  # command -> "module::test" that runs it (the module under tests/)
     "bash scripts/install.sh && torchir fit --config configs/quickstart.yaml":
         "core/test_readme_commands::test_fit_commands_as_the_readme_writes_them",

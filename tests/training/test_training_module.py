@@ -998,3 +998,40 @@ def test_project_parameters_clamps_to_the_bounds():
     model.project_parameters()
     torch.testing.assert_close(model.scene_values()[KEY].detach(), torch.tensor([0.2, 0.3, 0.4]))
     torch.testing.assert_close(model.scene_values()[GREEN].detach(), torch.full((3,), 7.0))
+
+
+# ------------------------------------------------------------------------ spp schedules
+def test_an_spp_schedule_renders_each_step_at_its_stage(fake_render):
+    """``spp: {2: 0, 5: 3}``: steps 0-2 render 2 spp, step 3 on 5; ``spp_grad`` follows unless set."""
+    model = make(spp={2: 0, 5: 3}, loss="l1")
+    model._truth = {}
+    targets = torch.full((1, 3, RES, RES), 0.5)
+    for step, spp in ((0, 2), (2, 2), (3, 5), (40, 5)):
+        fake_render.calls.clear()
+        _step(model, [0], targets, step=step)
+        assert [(c["spp"], c["spp_grad"]) for c in fake_render.calls] == [(spp, spp)]
+        assert model.step_metrics["paths_per_step"] == RES * RES * 2 * spp
+        assert (model.spp, model.spp_grad) == (spp, spp)  # the current step's (trainer.global_step)
+    fixed = make(spp={2: 0, 5: 3}, spp_grad=1)
+    assert [(fixed.spp_at(s), fixed.spp_grad_at(s)) for s in (0, 3)] == [(2, 1), (5, 1)]
+
+
+def test_an_spp_schedule_reaches_the_pixel_sampled_loss(fake_sampled_loss):
+    model = make(sampler={"type": "uniform", "budget": 6}, spp={3: 0, 7: 10})
+    _, _, early = model.sampled_loss([0], torch.zeros(1, 3, RES, RES), step=9)
+    _, _, late = model.sampled_loss([0], torch.zeros(1, 3, RES, RES), step=10)
+    assert [(c["spp"], c["spp_grad"]) for c in fake_sampled_loss] == [(3, 3), (7, 7)]
+    assert (early, late) == (6 * (3 + 3), 6 * (7 + 7))
+
+
+@pytest.mark.parametrize(("spp", "message"), [
+    ({8: 5}, "model.spp: the first stage must start at step 0, got {8: 5} (the mapping is {spp: first step}, e.g. {8: 0, 64: 100})"),
+    ({0: 8}, "model.spp (a key of {0: 8}: the mapping is {spp: first step}) must be >= 1, got 0"),
+    ({8: 0, 64: 0}, "model.spp: list the stages in the order they are used, with strictly increasing first steps, got {8: 0, 64: 0}"),
+    ({8: 0, 64: -1}, "model.spp: the first step of 64 spp must be an int >= 0, got -1 (the mapping is {spp: first step}, e.g. {8: 0, 64: 100})"),
+    ({}, "model.spp must be a count >= 1 or a mapping {spp: first step}, e.g. {8: 0, 64: 100}; got {}"),
+])
+def test_bad_spp_schedules_are_refused_with_their_message(spp, message):
+    with pytest.raises(ValueError) as error:
+        make(spp=spp)
+    assert str(error.value) == message

@@ -37,6 +37,7 @@ SUITES: dict[str, str] = {  # suite -> module with main(argv)
     "jpeg": "torchir.bench.jpeg",
     "shape_tutorial": "torchir.bench.shape_tutorial",
     "mesh_step": "torchir.bench.mesh_step",
+    "volume_tutorial": "torchir.bench.volume_tutorial",
 }
 ALL = tuple(SUITES)
 

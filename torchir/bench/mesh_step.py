@@ -148,15 +148,16 @@ class TorchirArm:
         return x.grad.detach().double().cpu().numpy().reshape(-1, 3)
 
 
-def time_steps(arms: dict[str, Any], iterations: int) -> dict[str, dict[str, Any]]:
-    """Every arm's steps, interleaved (the order alternates), timed and their kernels counted."""
+def time_steps(arms: dict[str, Any], iterations: int, views: int = VIEWS) -> dict[str, dict[str, Any]]:
+    """Every arm's steps (``arm.step(step, view)``, ``iterations`` x ``views``), interleaved (the
+    order alternates), timed and their kernels counted; the first ``2 x views`` are warm-up."""
     from torchir.backend import count_kernels
 
     times: dict[str, list[float]] = {name: [] for name in arms}
     kernels: dict[str, list[int]] = {name: [] for name in arms}
     step = 0
     for _ in range(iterations):
-        for view in range(VIEWS):
+        for view in range(views):
             names = list(arms) if step % 2 == 0 else list(arms)[::-1]
             for name in names:
                 with count_kernels() as stats:
@@ -166,7 +167,7 @@ def time_steps(arms: dict[str, Any], iterations: int) -> dict[str, dict[str, Any
                 times[name].append(seconds)
                 kernels[name].append(stats.compiled)
             step += 1
-    warm = 2 * VIEWS
+    warm = 2 * views
     return {name: {"step_s": float(np.mean(times[name][warm:])), "step_sd_s": float(np.std(times[name][warm:])),
                    "kernels_after_warmup": int(sum(kernels[name][warm:])), "kernels_warmup": int(sum(kernels[name][:warm])),
                    "steps": times[name]} for name in arms}

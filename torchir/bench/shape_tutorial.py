@@ -154,18 +154,24 @@ def write_config(assets: Assets, targets: list[Path], args: argparse.Namespace, 
     return path
 
 
-def torchir_arm(config: Path, out: Path, seed: int) -> dict[str, Any]:
-    """``torchir fit --config config`` in this process; its Chamfer rows and step times."""
+def fit_in_process(config: Path, out: Path, name: str) -> tuple[Path, float]:
+    """``torchir fit --config config`` in this process, its output in ``out/name.log``; the run's
+    folder (the newest ``out/runs/name/version_*``) and its wall time in seconds."""
     from torchir.training.cli import main
 
-    log = out / f"torchir-s{seed}.log"
+    log = out / f"{name}.log"
     start = time.perf_counter()
     with open(log, "w") as stream, contextlib.redirect_stdout(stream), contextlib.redirect_stderr(stream):
         code = main(["fit", "--config", str(config)])
     wall = time.perf_counter() - start
     if code != 0:
         raise RuntimeError(f"torchir fit failed (exit {code}); see {log}")
-    run = max((out / "runs" / f"torchir-s{seed}").glob("version_*"), key=lambda p: int(p.name.split("_")[1]))
+    return max((out / "runs" / name).glob("version_*"), key=lambda p: int(p.name.split("_")[1])), wall
+
+
+def torchir_arm(config: Path, out: Path, seed: int) -> dict[str, Any]:
+    """``torchir fit --config config`` in this process; its Chamfer rows and step times."""
+    run, wall = fit_in_process(config, out, f"torchir-s{seed}")
     chamfer: dict[int, float] = {}
     seconds, vertices = [], None
     with open(run / "metrics.csv") as f:

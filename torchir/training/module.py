@@ -20,6 +20,7 @@ from ..jpeg import CodecCorrection
 from . import remeshing
 from ._resolve import _as_config, _from_checkpoint, _load_scene, _resolve_denoiser, _resolve_loss, _resolve_sampler, _to_checkpoint
 from . import resolution as coarse_to_fine
+from .spp import SppSchedule
 from .parameters import LargeStepsParameter, ParameterConfig, SceneParameter, is_mesh_file, large_steps_lambda, resolve_value
 
 __all__ = ["InverseRenderingModule", "NonFiniteLossError"]
@@ -73,7 +74,10 @@ class InverseRenderingModule(pl.LightningModule):
             weighted loss, whose gradient is the pixel-sampled estimator of Eq. 4 of Yan et al. 2025,
             "Image-space Adaptive Sampling for Fast Inverse Rendering", refreshing the sampler's pmf
             on its schedule.
-        spp, spp_grad: samples per pixel of the primal image and of the gradient pass.
+        spp, spp_grad: samples per pixel of the primal image and of the gradient pass. ``spp``
+            may be a schedule ``{spp: first step}`` (``{8: 0, 64: 100}``: 8 from step 0, 64 from
+            step 100, as Mitsuba's volume tutorial raises it with the grid's resolution);
+            ``spp_grad`` (a count) defaults to the step's ``spp``.
         seed: base seed; step ``t`` renders view ``v`` with a seed derived from (seed, t, v) only,
             so runs, resumed runs and multi-process runs see the same random numbers.
         lr: learning rate (per-parameter ``lr`` overrides it).
@@ -109,7 +113,7 @@ class InverseRenderingModule(pl.LightningModule):
         loss: Union[str, nn.Module, dict[str, Any]] = "l2",
         denoiser: Optional[Union[nn.Module, dict[str, Any]]] = None,
         sampler: Optional[dict[str, Any]] = None,
-        spp: int = 8,
+        spp: Union[int, dict[int, int]] = 8,
         spp_grad: Optional[int] = None,
         seed: int = 0,
         lr: float = 0.05,
@@ -121,7 +125,8 @@ class InverseRenderingModule(pl.LightningModule):
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["loss", "denoiser"])
-        counts = {"spp": spp, "preview_spp": preview_spp, **({} if spp_grad is None else {"spp_grad": spp_grad})}
+        self.spp_schedule = SppSchedule.parse(spp)
+        counts = {"preview_spp": preview_spp, **({} if spp_grad is None else {"spp_grad": spp_grad})}
         for name, value in counts.items():
             if value < 1:
                 raise ValueError(f"model.{name} must be >= 1, got {value}")
@@ -166,7 +171,7 @@ class InverseRenderingModule(pl.LightningModule):
 
             derived = self.scene.derived
             _check_sampler(self.scene, self.sampler, frozenset(derived[k].target if k in derived else k for k in self.keys))
-        self.spp, self.spp_grad, self.seed, self.lr = spp, spp if spp_grad is None else spp_grad, seed, lr
+        self.fixed_spp_grad, self.seed, self.lr = spp_grad, seed, lr
         self.optimizer_name, self.preview_spp, self.lr_half_life = optimizer, preview_spp, lr_half_life
         self.distance_every_n_steps = distance_every_n_steps
         self._distances_at: Optional[int] = None  # the last step whose row has the mesh distances
@@ -375,13 +380,32 @@ class InverseRenderingModule(pl.LightningModule):
         """Seed of view ``view`` at optimiser step ``step``: a function of (seed, step, view) only."""
         return (self.seed * _GOLDEN + step * self.scene.sensor_count + view) % 2**32
 
+    def spp_at(self, step: int) -> int:
+        """Samples per pixel of the primal image at optimiser step ``step`` (``model.spp``)."""
+        return self.spp_schedule.at(step)
+
+    def spp_grad_at(self, step: int) -> int:
+        """Samples per pixel of the gradient pass at ``step``: ``model.spp_grad``, else the step's spp."""
+        return self.spp_at(step) if self.fixed_spp_grad is None else self.fixed_spp_grad
+
+    @property
+    def spp(self) -> int:
+        """Samples per pixel of the primal image at the current step."""
+        return self.spp_at(self.global_step)
+
+    @property
+    def spp_grad(self) -> int:
+        """Samples per pixel of the gradient pass at the current step."""
+        return self.spp_grad_at(self.global_step)
+
     def render_views(self, views: list[int], step: int) -> torch.Tensor:
         """Differentiable renders of ``views`` at ``step``, ``(B, C, H, W)`` (through the ReSTIR
         sampler when one is set)."""
         values = self.scene_values()
         extra = {} if self.sampler is None or self.pixel_mode else {"sampler": self.sampler}
         images = [
-            render(self.scene, values, spp=self.spp, seed=self.step_seed(step, v), sensor=v, spp_grad=self.spp_grad, **extra)
+            render(self.scene, values, spp=self.spp_at(step), seed=self.step_seed(step, v), sensor=v,
+                   spp_grad=self.spp_grad_at(step), **extra)
             for v in views
         ]
         return torch.stack(images)
@@ -459,10 +483,10 @@ class InverseRenderingModule(pl.LightningModule):
         batch = self.sampler.sample(views)
         scored = sampled_loss(
             self.scene, self.scene_values() if values is None else values, batch, targets, views, self.loss_fn,
-            seed=lambda view: self.step_seed(step, view), spp=self.spp, spp_grad=self.spp_grad,
+            seed=lambda view: self.step_seed(step, view), spp=self.spp_at(step), spp_grad=self.spp_grad_at(step),
         )
         error = (scored.weight * (scored.radiance.detach() - scored.target).square().mean(-1)).sum()
-        return scored.loss, error, batch.index.numel() * (self.spp + self.spp_grad)
+        return scored.loss, error, batch.index.numel() * (self.spp_at(step) + self.spp_grad_at(step))
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> Optional[torch.Tensor]:
         views = [int(v) for v in batch["view"]]
@@ -500,7 +524,7 @@ class InverseRenderingModule(pl.LightningModule):
                 images = self.denoise(images, targets, views, guide)
             loss = self.loss_fn(images, targets)
             h, w = self.scene.resolution
-            paths = len(views) * h * w * (self.spp + self.spp_grad)
+            paths = len(views) * h * w * (self.spp_at(step) + self.spp_grad_at(step))
         if not bool(torch.isfinite(loss)):
             self.nonfinite = (
                 f"the loss became {loss.item()} at step {self.global_step} (views {views}); the run stopped "

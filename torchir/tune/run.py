@@ -14,7 +14,7 @@ from .config import UserConfig, read_config, write_tuned
 from .measure import Bench, Reference
 from .report import plot_pareto, setting_rows, table
 from .search import OPTIMISER_WINDOW, BudgetSpent, Clock, Search, coordinate_search, grid_search, training_candidates, with_loss_choice
-from .space import Setting, Space, enumerate_space
+from .space import Setting, Space, config_spp, enumerate_space
 
 __all__ = ["Effort", "EFFORTS", "tune", "default_out", "reference_batch_spp"]
 
@@ -182,7 +182,7 @@ def _space(bench: Bench, data_class: type, quick: bool) -> tuple[Space, int]:
 def _as_is(bench: Bench) -> Setting:
     """The config's own setting (its module must build: a config error stops here)."""
     model = bench.user.model
-    return Setting(int(model.get("spp", 8)), model.get("sampler"), model.get("denoiser"), None, model.get("spp_grad"))
+    return Setting(config_spp(model), model.get("sampler"), model.get("denoiser"), None, model.get("spp_grad"))
 
 
 def _write_tuned(user: UserConfig, space: Space, final: Optional[Setting], why: str, rows: list[dict[str, Any]]) -> Optional[Path]:

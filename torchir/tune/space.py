@@ -175,6 +175,16 @@ def _include(options: list[Optional[dict[str, Any]]], own: Optional[dict[str, An
         options.append(own)
 
 
+def config_spp(model: dict[str, Any]) -> int:
+    """The config's ``model.spp`` (default 8); a schedule ``{spp: first step}`` is refused: a
+    setting is one spp for the whole run."""
+    spp = model.get("spp", 8)
+    if isinstance(spp, dict):
+        raise ValueError(f"torchir tune tries one spp for a whole run, and model.spp is a schedule {spp}: "
+                         f"tune the config with one count (e.g. spp: {next(iter(spp))}), then put the schedule back")
+    return int(spp)
+
+
 def enumerate_space(model: dict[str, Any], scene: Any, loss_fn: Any, pixel_targets_ok: bool, quick: bool) -> Space:
     """The options for a config's ``model`` arguments.
 
@@ -187,7 +197,7 @@ def enumerate_space(model: dict[str, Any], scene: Any, loss_fn: Any, pixel_targe
     """
     from ..integrators.restir_di import check_scene
 
-    spp = int(model.get("spp", 8))
+    spp = config_spp(model)
     grad = model.get("spp_grad")
     sampler, denoiser = _normalised(model.get("sampler")), _normalised(model.get("denoiser"))
     notes: list[str] = []
