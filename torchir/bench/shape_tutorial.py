@@ -325,6 +325,12 @@ def tutorial_parser(doc: str, suite: str, quick: str) -> argparse.ArgumentParser
     return p
 
 
+def add_seed_options(p: argparse.ArgumentParser) -> None:
+    """``--seeds`` and ``--first-seed``: the tutorial suites' runs per arm and their first seed."""
+    p.add_argument("--seeds", type=int, default=1, help="runs per arm, seeds first-seed, first-seed + 1, ...")
+    p.add_argument("--first-seed", type=int, default=0)
+
+
 def fill_sizes(args: argparse.Namespace, quick: dict[str, int], full: dict[str, int]) -> argparse.Namespace:
     """Each size option left unset takes its ``--quick`` or full default."""
     for key, value in (quick if args.quick else full).items():
@@ -345,8 +351,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--phase1", type=int, default=None, help="iterations before the remesh (default 80; --quick 6)")
     p.add_argument("--phase2", type=int, default=None, help="iterations after it (default 30; --quick 3)")
     p.add_argument("--target-spp", type=int, default=256)
-    p.add_argument("--seeds", type=int, default=1, help="runs per arm, seeds first-seed, first-seed + 1, ...")
-    p.add_argument("--first-seed", type=int, default=0)
+    add_seed_options(p)
     args = fill_sizes(p.parse_args(argv), {"resolution": 48, "spp": 4, "phase1": 6, "phase2": 3},
                       {"resolution": 96, "spp": 8, "phase1": 80, "phase2": 30})
     if args.phase1 < 2 or args.phase2 < 1:

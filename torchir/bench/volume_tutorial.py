@@ -46,7 +46,7 @@ import numpy as np
 
 from torchir.bench import environment
 from torchir.bench._common import fmt, markdown_table
-from torchir.bench.shape_tutorial import ROOT, fill_sizes, fit_in_process, read_target, tutorial_parser
+from torchir.bench.shape_tutorial import ROOT, add_seed_options, fill_sizes, fit_in_process, read_target, tutorial_parser
 
 VIEWS, DISTANCE, FOV, LR, SCALE, START = 5, 4.0, 45.0, 0.02, 40.0, 0.002  # the notebook's rig, optimiser, medium
 BOUNDS = (1e-6, 1.0)
@@ -381,8 +381,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--phase2", type=int, default=None, help="iterations after it (default 20; --quick 2)")
     p.add_argument("--target-spp", type=int, default=None, help="default 512 (the notebook's); --quick 64")
     p.add_argument("--step-iterations", type=int, default=None, help="interleaved fine-grid iterations (default 4; --quick 3)")
-    p.add_argument("--seeds", type=int, default=1, help="runs per arm, seeds first-seed, first-seed + 1, ...")
-    p.add_argument("--first-seed", type=int, default=0)
+    add_seed_options(p)
     args = fill_sizes(p.parse_args(argv),
                       {"resolution": 32, "spp": 4, "coarse": 8, "fine": 16, "phase1": 3, "phase2": 2, "target_spp": 64,
                        "step_iterations": 3},
