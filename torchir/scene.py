@@ -26,7 +26,7 @@ import math
 import os
 import warnings
 import weakref
-from collections.abc import Mapping, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -128,6 +128,7 @@ class Scene:
         self._overridden: set[str] = set()
         self._owner: object | None = None  # the render op whose grad-enabled values are bound
         self._warned: set[str] = set()
+        self._verdicts: dict[Hashable, Any] = {}  # checks on this scene's contents, kept as long as it lives
         self.derived: dict[str, DerivedParameter] = {}  # reparameterisations declared by the scene
         self.is_builtin = False  # made by Scene.builtin (not from a user's file or dict)
         # each mesh's weld from the positions and normals it was loaded with, made when first asked
@@ -506,6 +507,15 @@ class Scene:
                 f"differentiates only the interior term: gradients miss the boundary term. Use a "
                 f"projective integrator (prb_projective, direct_projective) for shape/pose parameters.",
             )
+
+    def verdict(self, key: Hashable, judge: Callable[[], Any]) -> Any:
+        """``judge()``, computed on the first call with ``key`` and kept with this scene (a
+        check of its contents that a fit does not change, e.g. whether a mesh's silhouettes are
+        differentiable). Kept here, not by the objects' addresses: a freed scene's mesh left its
+        address to a later scene's, which was then given the freed one's verdict."""
+        if key not in self._verdicts:
+            self._verdicts[key] = judge()
+        return self._verdicts[key]
 
     def warn_once(self, key: str, message: str) -> None:
         """A ``UserWarning`` about this scene, issued once per ``key``."""

@@ -110,10 +110,6 @@ def render(
     return image.permute(2, 0, 1)
 
 
-_REFUSED: dict[tuple[int, int], str | None] = {}
-_BANDED: dict[tuple[int, int], bool] = {}  # smooth-shaded and seen: Mitsuba misses its shading-horizon band
-
-
 def _check_projective_silhouettes(scene: Scene, grad_names: frozenset[str], sensor: int) -> None:
     """Refuse what Mitsuba's projective integrators differentiate wrong: the primary silhouettes
     of a moving mesh the sensor sees that is flat-shaded or shows the back of a one-sided material
@@ -128,11 +124,9 @@ def _check_projective_silhouettes(scene: Scene, grad_names: frozenset[str], sens
         return
     for shape in scene.mi_scene.shapes():
         if isinstance(shape, mi.Mesh) and shape.id() in names:
-            key = (id(shape), sensor)
-            if key not in _REFUSED:
-                _REFUSED[key] = _projective_silhouette_problem(scene, shape, sensor)
-                _BANDED[key] = not _REFUSED[key] and _smooth_and_seen(scene, shape, sensor)
-            if _BANDED[key]:
+            refused, banded = scene.verdict(("projective silhouettes", shape.id(), sensor),
+                                            lambda: _silhouette_verdict(scene, shape, sensor))
+            if banded:
                 scene.warn_once(
                     f"band-{shape.id()}",
                     f"{shape.id()!r} is smooth-shaded: {type(scene.integrator).__name__} misses the shading-horizon band "
@@ -140,12 +134,19 @@ def _check_projective_silhouettes(scene: Scene, grad_names: frozenset[str], sens
                     f"silhouette gets a wrong derivative (translations are right; docs/shape-gradients.md, \"Smooth-shaded "
                     f"meshes\"). {_band_advice(scene, shape, sensor)}",
                 )
-            if _REFUSED[key]:
-                reason, remedy = _REFUSED[key]
+            if refused:
+                reason, remedy = refused
                 raise ValueError(
                     f"{shape.id()!r}: {reason}; {type(scene.integrator).__name__}'s primary silhouette term would be "
                     f"wrong there. {_restir_advice(scene)}{remedy}."
                 )
+
+
+def _silhouette_verdict(scene: Scene, mesh: mi.Mesh, sensor: int) -> tuple[tuple[str, str] | None, bool]:
+    """``(why and what fixes it, or None; whether the shading-horizon band warning applies)``."""
+    refused = _projective_silhouette_problem(scene, mesh, sensor)
+    return refused, not refused and _smooth_and_seen(scene, mesh, sensor)
+
 
 def _restir_advice(scene: Scene) -> str:
     """"Render through ReSTIR, or" where ReSTIR takes the scene, else why it cannot."""

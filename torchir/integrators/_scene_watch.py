@@ -70,13 +70,13 @@ class EmitterWatch:
     _PLACEMENT = ("position", "to_world", "vertex_positions", "direction")
 
     def __init__(self) -> None:
-        self._scene_ref: int | None = None
+        self._scene: mi.Scene | None = None  # held, not its address: a freed scene's address is reused
         self._keys: list[tuple[list[str], list[str]]] = []  # (emission, placement) keys per light
         self._params = None
         self._read = ValueReader()
 
     def _bind(self, scene: mi.Scene) -> None:
-        self._scene_ref, self._params = id(scene), mi.traverse(scene)
+        self._scene, self._params = scene, mi.traverse(scene)
         keys = list(self._params.keys())
         self._keys = []
         for em in scene.emitters():
@@ -91,7 +91,7 @@ class EmitterWatch:
 
     def __call__(self, scene: mi.Scene) -> tuple:
         """``(lights on, placements)``: one entry per emitter."""
-        if self._scene_ref != id(scene):
+        if self._scene is not scene:
             self._bind(scene)
         on, where = [], []
         for emission, place in self._keys:
@@ -115,14 +115,14 @@ class GeometryWatch:
     positions (a new one whenever they are written) and each shape's transform."""
 
     def __init__(self) -> None:
-        self._scene_ref: int | None = None
+        self._scene: mi.Scene | None = None  # held, not its address: a freed scene's address is reused
         self._params = None
         self._keys: list[str] = []
         self._read = ValueReader()
 
     def __call__(self, scene: mi.Scene) -> tuple:
-        if self._scene_ref != id(scene):
-            self._scene_ref, self._params = id(scene), mi.traverse(scene)
+        if self._scene is not scene:
+            self._scene, self._params = scene, mi.traverse(scene)
             shapes = {sh.id() for sh in scene.shapes()}
             self._keys = [k for k in self._params.keys()
                           if k.split(".", 1)[0] in shapes and k.endswith((".vertex_positions", ".to_world"))]
