@@ -448,7 +448,7 @@ def test_emitter_watch_point_and_spot_lights(oxalis):
 
 def _no_traverse_on_the_bound_scene(watch, scene):
     state = watch(scene.mi_scene)
-    assert watch._scene_ref == id(scene.mi_scene)
+    assert watch._scene is scene.mi_scene  # the scene itself, held: a freed one's address is reused
     traverse = mi.traverse
     try:
         mi.traverse = None  # the bound parameters are reused: a call costs host reads only
