@@ -170,6 +170,15 @@ def test_pixel_sampling_and_loi_follow_the_loss_and_targets():
     assert 2 in l2.spps and l2.base == Setting(2)
 
 
+def test_pixel_sampling_is_left_out_for_a_projective_integrator():
+    """A shape config renders through direct_projective, whose boundary terms render_pixels does not
+    restrict to pixels: each pixel sampler was a failed row of the table (a TypeError) instead."""
+    scene = torchir.Scene.builtin("painting", resolution=16, override_integrator={"type": "direct_projective"})
+    space = enumerate_space({"spp": 2, "loss": "l2"}, scene, LOSSES["l2"](), True, quick=True)
+    assert not any(s and s["type"] in ("uniform", "loss", "adaptive") for s in space.samplers)
+    assert any(n.startswith("pixel sampling: left out") and "DirectProjectiveIntegrator" in n for n in space.notes), space.notes
+
+
 def test_spp_grad_keeps_its_proportion():
     scene = torchir.Scene.builtin("painting", resolution=16)
     space = enumerate_space({"spp": 4, "spp_grad": 8}, scene, LOSSES["l2"](), True, quick=True)

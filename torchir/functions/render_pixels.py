@@ -226,15 +226,23 @@ def _render_pixels_drjit(scene: Scene, values: dict, index, grad_names: frozense
     return dr.custom(_PixelRenderOp, scene, native, grad_names, pixel_settings)
 
 
-def _check_integrator(scene: Scene) -> None:
+def integrator_problem(scene: Scene) -> str | None:
+    """Why ``render_pixels`` cannot render ``scene``'s integrator, or None: it replays paths
+    (``prb``, ``prb_basic``, ``prbvolpath``); a projective integrator's boundary terms are not
+    restricted to pixels (``torchir tune`` leaves pixel sampling out for them)."""
     from mitsuba.python.ad.integrators.common import RBIntegrator
 
     integrator = scene.integrator
-    if not isinstance(integrator, RBIntegrator):
-        raise TypeError(
-            f"render_pixels needs a path-replay integrator (prb, prb_basic, prbvolpath); the scene "
-            f"uses {type(integrator).__name__}"
-        )
+    if isinstance(integrator, RBIntegrator):
+        return None
+    return (f"render_pixels needs a path-replay integrator (prb, prb_basic, prbvolpath); the scene "
+            f"uses {type(integrator).__name__}")
+
+
+def _check_integrator(scene: Scene) -> None:
+    problem = integrator_problem(scene)
+    if problem is not None:
+        raise TypeError(problem)
 
 
 def _check_box_filter(scene: Scene, sensor: int) -> None:

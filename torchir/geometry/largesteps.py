@@ -10,6 +10,8 @@ symmetric).
 """
 from __future__ import annotations
 
+import atexit
+import weakref
 from typing import Any
 
 import numpy as np
@@ -34,12 +36,24 @@ class _Factor:
         as_device = lambda a, t: torch.as_tensor(a, dtype=t, device=device).contiguous()  # noqa: E731
         self.solver = solver(n, as_device(rows, torch.int32), as_device(cols, torch.int32), as_device(values, torch.float64),
                              MatrixType.COO)
+        _LIVE_FACTORS.add(self)
 
     def solve(self, b: torch.Tensor) -> torch.Tensor:
         b = b.detach().contiguous()
         x = torch.empty_like(b)
         self.solver.solve(b, x)
         return x
+
+
+_LIVE_FACTORS: "weakref.WeakSet[_Factor]" = weakref.WeakSet()
+
+
+@atexit.register
+def _free_factors() -> None:
+    """Free the solvers still alive at exit (held by an autograd graph or a run's module):
+    nanobind printed "leaked instance ... CholeskySolverF" after every Large Steps run."""
+    for factor in list(_LIVE_FACTORS):
+        factor.solver = None
 
 
 class _Solve(torch.autograd.Function):

@@ -4,7 +4,8 @@ A :class:`Setting` is the tuned part of ``model``: ``spp`` (and ``spp_grad`` in 
 the config sets it), ``sampler`` (a pixel sampler or ReSTIR), ``denoiser`` and, for settings
 scored only by training, ``loss``. :func:`enumerate_space` keeps what the scene and loss admit:
 
-* pixel samplers only for a per-pixel loss (``pixelwise``, as the module requires) and targets
+* pixel samplers only for a path-replay integrator (``prb``, ``prb_basic``, ``prbvolpath``: not
+  a projective one's shape gradients), a per-pixel loss (``pixelwise``, as the module requires) and targets
   that do not clip (pixel sampling compares unclipped pixels);
 * ReSTIR only when :func:`torchir.integrators.restir_di.check_scene` accepts the scene (direct
   illumination only: no indirect bounces, media or environment light);
@@ -195,6 +196,7 @@ def enumerate_space(model: dict[str, Any], scene: Any, loss_fn: Any, pixel_targe
         pixel_targets_ok: whether the targets allow pixel sampling (no clipping).
         quick: fewer spp rungs and one pixel budget (every family of sampler and denoiser stays).
     """
+    from ..functions.render_pixels import integrator_problem
     from ..integrators.restir_di import check_scene
 
     spp = config_spp(model)
@@ -202,7 +204,10 @@ def enumerate_space(model: dict[str, Any], scene: Any, loss_fn: Any, pixel_targe
     sampler, denoiser = _normalised(model.get("sampler")), _normalised(model.get("denoiser"))
     notes: list[str] = []
     samplers: list[Optional[dict[str, Any]]] = [None]
-    if getattr(loss_fn, "pixelwise", False) and hasattr(loss_fn, "pixel_terms"):
+    pixel_problem = integrator_problem(scene)
+    if pixel_problem is not None:
+        notes.append(f"pixel sampling: left out, {pixel_problem}")
+    elif getattr(loss_fn, "pixelwise", False) and hasattr(loss_fn, "pixel_terms"):
         if pixel_targets_ok:
             fractions = (0.25,) if quick else (0.25, 0.05)
             kinds = ("uniform", "loss", "adaptive")  # every family, quick too (quick: one budget)
