@@ -344,7 +344,7 @@ def _restir_light_on_after_burn_in(**options: Any) -> Callable[[dict], Any]:
 
 
 def _lit_with_gradient(result: Any, ctx: dict) -> str | None:
-    image, grad = result
+    image, grad = (t.detach() for t in result)
     if not (torch.isfinite(image).all() and float(image.mean()) > 0 and torch.isfinite(grad).all() and float(grad.abs().sum()) > 0):
         return "the light switched on must light the image and give a finite, non-zero albedo gradient"
     return None

@@ -196,16 +196,25 @@ def moving_meshes(scene: mi.Scene, params: Mapping[str, Any] | None) -> list[mi.
 class WeldedFaces:
     """Context manager: inside it, each of ``meshes`` that repeats positions has welded faces
     (and, where its copies' normals differ, face normals); on exit the user's faces and normals
-    are bound again. ``params`` is the scene's :func:`mitsuba.traverse` (the scene's acceleration
-    structure is updated both ways). With nothing to weld it does nothing.
+    are bound again. ``params`` is the scene's :func:`mitsuba.traverse`. With nothing to weld it
+    does nothing.
+
+    Welded faces list the same triangles in the same order (each corner moved to the first copy
+    at its position), so the acceleration structure built for either serves both: Mitsuba
+    computes a hit from the face index and its current faces. It is rebuilt only where the pass
+    inside needs what Mitsuba derives with it: ``indirect`` (the pass samples indirect
+    silhouettes, whose edge distribution Mitsuba rebuilds only when positions change) or a
+    flat-shaded mesh (its vertex normals are dropped). Going back binds faces and normals alone:
+    the next bind of new positions rebuilds the rest (``docs/geometry.md``, the shape step).
 
     Example:
         >>> with WeldedFaces(mi.traverse(scene), moving_meshes):  # doctest: +SKIP
         ...     boundary_integrator.render_backward(scene, params, grad_in, sensor)
     """
 
-    def __init__(self, params: Any, meshes: Iterable[mi.Mesh]) -> None:
+    def __init__(self, params: Any, meshes: Iterable[mi.Mesh], indirect: bool = True) -> None:
         self.params = params
+        self.indirect = indirect
         self.todo = []
         for mesh in meshes:
             if not isinstance(mesh, mi.Mesh):
@@ -226,7 +235,7 @@ class WeldedFaces:
             self._swap(f"{name}.faces", weld.jit("welded_faces"))
             if mesh.has_vertex_normals():  # flat: face normals; smooth: its group normals, below
                 self._swap(f"{name}.vertex_normals", dr.zeros(mi.Float, 0) if weld.flat else self.params[f"{name}.vertex_normals"])
-        self._update_faces()
+        self._update_faces(rebuild=self.indirect or any(weld.flat for _, weld in self.todo))
         smooth = [(mesh, weld) for mesh, weld in self.todo if mesh.has_vertex_normals() and not weld.flat]
         self._set_normals({f"{mesh.id()}.vertex_normals": group_normals(mesh, weld) for mesh, weld in smooth})
         return self
@@ -238,15 +247,18 @@ class WeldedFaces:
         for key, value in reversed(saved):
             self.params[key] = value
             self.params.set_dirty(key)
-        self._update_faces()
+        self._update_faces(rebuild=any(weld.flat for _, weld in self.todo))
         self._set_normals({key: value for key, value in saved if key.endswith(".vertex_normals")})
 
-    def _update_faces(self) -> None:
-        # Positions marked too: Mitsuba rebuilds its edge-sampling distribution only when they
-        # change; after a change of faces alone its indirect silhouettes were drawn from the old
-        # topology's (twice the gradient of a welded box). It then recomputes the normals too.
-        for mesh, _ in self.todo:
-            self.params.set_dirty(f"{mesh.id()}.vertex_positions")
+    def _update_faces(self, rebuild: bool) -> None:
+        # A change of faces alone rebuilds Mitsuba's directed edges (its primary silhouettes);
+        # ``rebuild`` marks the positions too: Mitsuba then rebuilds its indirect edge-sampling
+        # distribution (after a change of faces alone its indirect silhouettes were drawn from
+        # the old topology's: twice the gradient of a welded box), the acceleration structure
+        # and the normals.
+        if rebuild:
+            for mesh, _ in self.todo:
+                self.params.set_dirty(f"{mesh.id()}.vertex_positions")
         self.params.update()
 
     def _set_normals(self, normals: dict[str, Any]) -> None:

@@ -199,3 +199,52 @@ def test_a_mesh_gets_its_loaded_normals_back_when_a_render_unbinds_its_positions
     after = render(scene, {}, spp=4, seed=3)
     np.testing.assert_array_equal(np.array(scene.params[normals]), loaded_normals)
     torch.testing.assert_close(after, before, rtol=0, atol=0)
+
+
+def test_a_pass_without_indirect_silhouettes_keeps_the_acceleration_structure(exported, monkeypatch):
+    """direct_projective with ``sppi: 0`` (Mitsuba's shape tutorial) welds a textured UV sphere's
+    faces for its boundary pass without rebuilding the acceleration structure, and goes back
+    without rebuilding it either: the gradient is the one with both rebuilds, and the image after
+    the step, uvs across the seam included, is a freshly loaded scene's."""
+    import torch
+
+    import torchir
+    import torchir.functions._passes as passes
+    from tests.helpers import DEVICE
+    from torchir.functions import render
+
+    def scene():
+        return torchir.Scene.from_dict({
+            "type": "scene", "integrator": {"type": "direct_projective", "sppi": 0},
+            "sensor": {"type": "perspective", "fov": 40,
+                       "to_world": mi.ScalarTransform4f().look_at(origin=[0.4, 0.5, 2.5], target=[0, 0, 0], up=[0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}},
+            "sphere": {"type": "obj", "filename": str(exported["uv_sphere"]["obj"]),
+                       "bsdf": {"type": "diffuse", "reflectance": {"type": "checkerboard"}}},
+            "light": {"type": "point", "position": [1.0, 2.0, 2.0], "intensity": {"type": "rgb", "value": 8.0}},
+        })
+
+    key = "sphere.vertex_positions"
+    weights = torch.rand(3, 16, 16, generator=torch.Generator(device=DEVICE).manual_seed(0))
+
+    def step(s):
+        x = (s.get(key) * 1.05).requires_grad_()
+        (render(s, {key: x}, spp=8, seed=2) * weights).sum().backward()
+        return x.grad
+
+    kept, rebuilt = scene(), scene()
+    grad = step(kept)
+    class Rebuilding(WeldedFaces):
+        def __init__(self, params, meshes, indirect: bool = True) -> None:
+            super().__init__(params, meshes, indirect=True)
+
+    with monkeypatch.context() as m:
+        m.setattr(passes, "WeldedFaces", Rebuilding)
+        reference = step(rebuilt)
+    assert grad.abs().max() > 0
+    torch.testing.assert_close(grad, reference, rtol=1e-4, atol=1e-6 * float(reference.abs().max()))
+    fresh = scene()
+    with torch.no_grad():
+        render(fresh, {key: fresh.get(key) * 1.05}, spp=1, seed=0)  # bound as the step left ``kept``
+    after, loaded = (np.array(mi.render(s.mi_scene, spp=8, seed=4)) for s in (kept, fresh))  # nothing updated since
+    np.testing.assert_allclose(after, loaded, rtol=0, atol=1e-6)

@@ -107,7 +107,7 @@ def _welded_boundary(scene: Scene, params: dict) -> WeldedFaces | None:
     if not isinstance(scene.integrator, PSIntegrator):
         return None
     meshes = moving_meshes(scene.mi_scene, params)
-    return WeldedFaces(scene.params, meshes) if meshes else None
+    return WeldedFaces(scene.params, meshes, indirect=scene.integrator.sppi != 0) if meshes else None
 
 
 def _split_adjoint(mi_scene: mi.Scene, sensor: int, grad_out: mi.TensorXf, seed: int, spp: int, params: dict,
