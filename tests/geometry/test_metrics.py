@@ -158,3 +158,16 @@ def test_bad_mesh_arguments_are_refused(sphere):
     assert "(vertices, faces) pair" in raised_message(TypeError, chamfer_distance, v, (v, f))
     assert "samples must be a positive int" in raised_message(ValueError, hausdorff_distance, (v, f), (v, f), samples=0)
     assert "(V, 3) or flat (3V,)" in raised_message(ValueError, chamfer_distance, (v[:, :2], f), (v, f))
+
+
+def test_chamfer_and_hausdorff_together_are_the_two_calls(sphere):
+    """One draw and one query each way give both: the same floats as the two functions (the
+    trainer logs both every distance row, and the separate calls cost twice)."""
+    from torchir.geometry import chamfer_and_hausdorff
+
+    v, f = sphere(0.5, 32, 16)
+    moved = (v * 1.1 + torch.tensor([0.05, 0.0, -0.02], device=DEVICE), f)
+    for seed in (0, 3):
+        c, h = chamfer_and_hausdorff((v, f), moved, samples=FEW, seed=seed)
+        assert c == chamfer_distance((v, f), moved, samples=FEW, seed=seed) and c > 0
+        assert h == hausdorff_distance((v, f), moved, samples=FEW, seed=seed) and h > 0

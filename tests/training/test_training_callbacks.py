@@ -84,6 +84,19 @@ def test_step_timer(tmp_path, clock, world):
         assert m.logged == [("seconds_per_step", 0.75, {"on_step": True, "on_epoch": False, "batch_size": 1})]
 
 
+def test_step_timer_leaves_out_the_rows_mesh_distances(tmp_path, clock):
+    """A step whose logged row computed the mesh distances (0.5 s of its 0.75 s): seconds_per_step
+    is the step's 0.25 s; the distances made a distance row's step look 3x its neighbours'."""
+    clock.times = [10.0, 10.75]
+    t, m = trainer(), module(tmp_path)
+    timer = StepTimer()
+    timer.on_train_batch_start(t, m, None, 0)
+    assert m.diagnostic_seconds == 0.0
+    m.diagnostic_seconds = 0.5  # what _record_step adds while the step runs
+    timer.on_train_batch_end(t, m, None, None, 0)
+    assert m.step_metrics == {"seconds_per_step": 0.25}
+
+
 def test_nonfinite_guard_quiet(tmp_path):
     t, m = trainer(), module(tmp_path)
     NonFiniteLossGuard().on_train_batch_end(t, m, None, None, 0)

@@ -15,7 +15,7 @@ import torch
 
 from ._mesh import as_vertices, face_tensor
 
-__all__ = ["sample_surface", "chamfer_distance", "hausdorff_distance"]
+__all__ = ["sample_surface", "chamfer_distance", "hausdorff_distance", "chamfer_and_hausdorff"]
 
 Mesh = tuple[Any, Any]  # (vertices (V, 3) or (3V,), faces (F, 3) or (3F,))
 
@@ -126,3 +126,11 @@ def hausdorff_distance(a: Mesh, b: Mesh, samples: int = 20000, seed: int = 0) ->
     Its sampling error is about the spacing of the samples (not its square)."""
     da, db = _directed(a, b, samples, seed)
     return float(max(da.max(), db.max()))
+
+
+def chamfer_and_hausdorff(a: Mesh, b: Mesh, samples: int = 20000, seed: int = 0) -> tuple[float, float]:
+    """``(chamfer_distance(a, b), hausdorff_distance(a, b))`` (squared Chamfer) from one draw of
+    ``samples`` points of each mesh and one nearest-sample query each way: the same values as the
+    two calls, at half their cost."""
+    da, db = _directed(a, b, samples, seed)
+    return float(np.mean(da**2) + np.mean(db**2)), float(max(da.max(), db.max()))

@@ -24,13 +24,16 @@ class ParameterProjection(pl.Callback):
 
 
 class StepTimer(pl.Callback):
-    """Log ``seconds_per_step``: wall time of a training step (render, loss, backward, update)."""
+    """Log ``seconds_per_step``: wall time of a training step (render, loss, backward, update),
+    less the module's ``diagnostic_seconds`` (the mesh distances of a logged row: a measurement
+    of the run, not part of its step)."""
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        pl_module.diagnostic_seconds = 0.0
         self._start = time.perf_counter()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        seconds = time.perf_counter() - self._start
+        seconds = time.perf_counter() - self._start - getattr(pl_module, "diagnostic_seconds", 0.0)
         pl_module.step_metrics["seconds_per_step"] = seconds  # written with the step's row
         if trainer.world_size > 1:
             pl_module.log("seconds_per_step", seconds, on_step=True, on_epoch=False, batch_size=1)

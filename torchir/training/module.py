@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import csv
 import math
+import time
 from pathlib import Path
 from typing import Any, Literal, Optional, Union
 
@@ -176,6 +177,7 @@ class InverseRenderingModule(pl.LightningModule):
         self.distance_every_n_steps = distance_every_n_steps
         self._distances_at: Optional[int] = None  # the last step whose row has the mesh distances
         self._distance_cache: Optional[tuple[Any, dict[str, float]]] = None
+        self.diagnostic_seconds = 0.0  # this step's time on diagnostics (mesh distances): StepTimer leaves it out
         self.nonfinite: Optional[str] = None  # set when a non-finite loss stopped the run
         self.step_metrics: dict[str, float] = {}  # the last step's scalars (loss, errors, paths, sampler/*)
         self._write_logs_at: Optional[int] = None
@@ -292,7 +294,7 @@ class InverseRenderingModule(pl.LightningModule):
         symmetric *squared* Chamfer distance and the Hausdorff distance between the current mesh
         (``values``: the current :meth:`scene_values`, when already computed) and the truth mesh,
         from :data:`DISTANCE_SAMPLES` area-uniform samples of each (:mod:`torchir.geometry`)."""
-        from ..geometry import chamfer_distance, hausdorff_distance
+        from ..geometry import chamfer_and_hausdorff
 
         if not self.truth_meshes:
             return {}
@@ -303,8 +305,7 @@ class InverseRenderingModule(pl.LightningModule):
         out = {}
         for key, truth in self.truth_meshes.items():
             mesh = (values[key].detach().reshape(-1, 3).cpu(), self.mesh_faces(key))
-            out[f"chamfer/{key}"] = chamfer_distance(mesh, truth, samples=DISTANCE_SAMPLES)
-            out[f"hausdorff/{key}"] = hausdorff_distance(mesh, truth, samples=DISTANCE_SAMPLES)
+            out[f"chamfer/{key}"], out[f"hausdorff/{key}"] = chamfer_and_hausdorff(mesh, truth, samples=DISTANCE_SAMPLES)
         self._distance_cache = (state, dict(out))
         return out
 
@@ -556,7 +557,9 @@ class InverseRenderingModule(pl.LightningModule):
         metrics.update(remeshing.vertex_counts(self))
         self._write_logs_at = self.global_step if self._loggers_write() else None
         if self.truth_meshes and self._write_logs_at is not None and self._distances_due():
-            metrics.update(self.mesh_distances(values))  # costly (~0.1-0.8 s): on some written rows only
+            start = time.perf_counter()
+            metrics.update(self.mesh_distances(values))  # costly: on some written rows only
+            self.diagnostic_seconds += time.perf_counter() - start  # not the step's: StepTimer leaves it out
         self.step_metrics = metrics
         distributed = self.trainer.world_size > 1
         self.log("loss", loss, prog_bar=True, on_step=True, on_epoch=False, batch_size=batch_size, sync_dist=True, logger=distributed)
