@@ -201,11 +201,11 @@ class WeldedFaces:
 
     Welded faces list the same triangles in the same order (each corner moved to the first copy
     at its position), so the acceleration structure built for either serves both: Mitsuba
-    computes a hit from the face index and its current faces. It is rebuilt only where the pass
-    inside needs what Mitsuba derives with it: ``indirect`` (the pass samples indirect
-    silhouettes, whose edge distribution Mitsuba rebuilds only when positions change) or a
-    flat-shaded mesh (its vertex normals are dropped). Going back binds faces and normals alone:
-    the next bind of new positions rebuilds the rest (``docs/geometry.md``, the shape step).
+    computes a hit from the face index and its current faces. It is rebuilt, going in and back,
+    only where the pass inside needs what Mitsuba derives with it: ``indirect`` (the pass samples
+    indirect silhouettes, whose edge distribution Mitsuba rebuilds only when positions change)
+    or a flat-shaded mesh (its vertex normals are dropped); else faces and normals are swapped
+    alone, both ways, and the structure keeps the user's faces (``docs/geometry.md``, the shape step).
 
     Example:
         >>> with WeldedFaces(mi.traverse(scene), moving_meshes):  # doctest: +SKIP
@@ -215,6 +215,7 @@ class WeldedFaces:
     def __init__(self, params: Any, meshes: Iterable[mi.Mesh], indirect: bool = True) -> None:
         self.params = params
         self.indirect = indirect
+        self._rebuilt = False  # whether going in rebuilt the acceleration structure (going back then does too)
         self.todo = []
         for mesh in meshes:
             if not isinstance(mesh, mi.Mesh):
@@ -235,7 +236,8 @@ class WeldedFaces:
             self._swap(f"{name}.faces", weld.jit("welded_faces"))
             if mesh.has_vertex_normals():  # flat: face normals; smooth: its group normals, below
                 self._swap(f"{name}.vertex_normals", dr.zeros(mi.Float, 0) if weld.flat else self.params[f"{name}.vertex_normals"])
-        self._update_faces(rebuild=self.indirect or any(weld.flat for _, weld in self.todo))
+        self._rebuilt = self.indirect or any(weld.flat for _, weld in self.todo)
+        self._update_faces(rebuild=self._rebuilt)
         smooth = [(mesh, weld) for mesh, weld in self.todo if mesh.has_vertex_normals() and not weld.flat]
         self._set_normals({f"{mesh.id()}.vertex_normals": group_normals(mesh, weld) for mesh, weld in smooth})
         return self
@@ -247,7 +249,7 @@ class WeldedFaces:
         for key, value in reversed(saved):
             self.params[key] = value
             self.params.set_dirty(key)
-        self._update_faces(rebuild=any(weld.flat for _, weld in self.todo))
+        self._update_faces(rebuild=self._rebuilt)  # the structure built for the welded faces must not outlive them
         self._set_normals({key: value for key, value in saved if key.endswith(".vertex_normals")})
 
     def _update_faces(self, rebuild: bool) -> None:
