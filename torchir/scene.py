@@ -129,6 +129,9 @@ class Scene:
         self._owner: object | None = None  # the render op whose grad-enabled values are bound
         self._warned: set[str] = set()
         self._verdicts: dict[Hashable, Any] = {}  # checks on this scene's contents, kept as long as it lives
+        # ids of the meshes whose vertex steps a Large Steps parametrization spreads over the surface
+        # (torchir.geometry.LargeSteps adds them); render's shading-band warning advises accordingly
+        self.spread_steps: set[str] = set()
         self.derived: dict[str, DerivedParameter] = {}  # reparameterisations declared by the scene
         self.is_builtin = False  # made by Scene.builtin (not from a user's file or dict)
         # each mesh's weld from the positions and normals it was loaded with, made when first asked

@@ -198,3 +198,33 @@ def test_a_process_that_ends_with_a_factor_alive_prints_no_leak():
               "builtins.kept = (ls, ls.from_differential(ls.to_differential(v).requires_grad_()))\n")
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and "leaked" not in done.stderr, done.stderr
+
+
+def test_the_shading_band_warning_does_not_advise_large_steps_to_a_mesh_that_has_them(exported):
+    """Under an environment (ReSTIR refuses it) a smooth mesh through direct_projective gets the
+    shading-horizon warning, whose remedy is Large Steps; Mitsuba's shape tutorial as a torchir
+    config has them already, and was told to add them."""
+    import warnings
+
+    from torchir.functions.render import _check_projective_silhouettes  # what render runs first
+
+    def warned(with_large_steps: bool) -> str:
+        scene = torchir.Scene.from_dict({
+            "type": "scene", "integrator": {"type": "direct_projective", "sppi": 0},
+            "sensor": {"type": "perspective", "fov": 40,
+                       "to_world": mi.ScalarTransform4f().look_at(origin=[0.4, 0.5, 2.5], target=[0, 0, 0], up=[0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 8, "height": 8, "rfilter": {"type": "box"}}},
+            "sphere": {"type": "obj", "filename": str(exported["uv_sphere"]["obj"]), "bsdf": {"type": "diffuse"}},
+            "sky": {"type": "constant"},
+        })
+        if with_large_steps:
+            LargeSteps(scene, "sphere", lambda_=25.0)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            _check_projective_silhouettes(scene, frozenset({"sphere.vertex_positions"}), 0)
+        (message,) = [str(w.message) for w in caught if "shading-horizon band" in str(w.message)]
+        return message
+
+    plain, spread = warned(False), warned(True)
+    assert "parametrization: {type: large_steps}" in plain and "environment emitters" in plain
+    assert "parametrization: {type: large_steps}" not in spread and "this mesh's Large Steps parametrization" in spread

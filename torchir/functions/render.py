@@ -174,10 +174,15 @@ def _band_advice(scene: Scene, mesh: mi.Mesh, sensor: int) -> str:
         if supported(scene.mi_scene, scene.mi_scene.sensors()[sensor], [mesh]):
             return "render(..., sampler=torchir.samplers.ReSTIRSampler(scene, preset='b2')) adds that term."
         reason = "its band term needs a pinhole camera with a box filter and no crop window, seeing the mesh whole"
+    if mesh.id() in scene.spread_steps:  # the run does what the advice would say
+        spread = ("this mesh's Large Steps parametrization spreads each vertex's step over its neighbours, as in "
+                  "Mitsuba's shape tutorial, which converges with it")
+    else:
+        spread = ("Mitsuba's shape tutorial converges with it, because its Large Steps parametrization (torchir: "
+                  "parametrization: {type: large_steps}) spreads each vertex's step over its neighbours")
     return (f"torchir's ReSTIR sampler, which adds that term, cannot take this scene ({reason}). The error is "
-            f"confined to the vertices beside silhouettes; Mitsuba's shape tutorial converges with it, because its Large "
-            f"Steps parametrization (torchir: parametrization: {{type: large_steps}}) spreads each vertex's step over "
-            f"its neighbours. warnings.filterwarnings('ignore', message='.*shading-horizon band') silences this warning.")
+            f"confined to the vertices beside silhouettes; {spread}. "
+            f"warnings.filterwarnings('ignore', message='.*shading-horizon band') silences this warning.")
 
 
 def _smooth_and_seen(scene: Scene, mesh: mi.Mesh, sensor: int) -> bool:

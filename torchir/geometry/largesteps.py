@@ -110,6 +110,7 @@ class LargeSteps:
         self.lambda_ = lambda_
         if isinstance(mesh, Scene):
             mi_mesh = scene_mesh(mesh, shape)
+            mesh.spread_steps.add(mi_mesh.id())
             loaded = mesh.mesh_weld(mi_mesh)  # the weld the scene made when it loaded (as its boundary terms use)
             self._weld = weld(loaded.rep, loaded.faces.astype(np.int64))
             self.device, self.dtype = torch.device(backend.device()), torch.float32
