@@ -41,7 +41,7 @@ __all__ = ["FORMS", "derivative_image", "pinhole", "screen_projection"]
 
 FORMS = ("attached", "material")
 _EDGE_PDF = 0.25  # an edge of the four, then a uniform point on it (length 1 pixel)
-_collected_for: int | None = None  # id of the scene of the last call (see derivative_image)
+_collected_for: mi.Scene | None = None  # the scene of the last call, held (see derivative_image)
 
 
 def pinhole(sensor: mi.Sensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -137,11 +137,12 @@ def derivative_image(
     # scenes that died but wait for the cyclic collector still sit in Dr.Jit's registry, and the
     # forward traversal through virtual calls reaches their differentiable members: measured after
     # another test module's scenes, an abort in the collector or an isolate_grad error. Collected
-    # on the first call for each scene (not every call: it would add to the timed steps)
+    # on the first call for each scene (not every call: it would add to the timed steps). The
+    # scene itself is held, not its address: a new scene at a freed one's address skipped it
     global _collected_for
-    if _collected_for != id(scene):
+    if _collected_for is not scene:
         gc.collect()
-        _collected_for = id(scene)
+        _collected_for = scene
     theta = mi.Float(0.0)
     dr.enable_grad(theta)
     params[key] = dr.detach(old) + mi.Float(v.ravel()) * dr.gather(mi.Float, theta, dr.zeros(mi.UInt32, 3 * count))
