@@ -215,7 +215,6 @@ class WeldedFaces:
     def __init__(self, params: Any, meshes: Iterable[mi.Mesh], indirect: bool = True) -> None:
         self.params = params
         self.indirect = indirect
-        self._rebuilt = False  # whether going in rebuilt the acceleration structure (going back then does too)
         self.todo = []
         for mesh in meshes:
             if not isinstance(mesh, mi.Mesh):
@@ -236,8 +235,7 @@ class WeldedFaces:
             self._swap(f"{name}.faces", weld.jit("welded_faces"))
             if mesh.has_vertex_normals():  # flat: face normals; smooth: its group normals, below
                 self._swap(f"{name}.vertex_normals", dr.zeros(mi.Float, 0) if weld.flat else self.params[f"{name}.vertex_normals"])
-        self._rebuilt = self.indirect or any(weld.flat for _, weld in self.todo)
-        self._update_faces(rebuild=self._rebuilt)
+        self._update_faces(rebuild=self._rebuilds)
         smooth = [(mesh, weld) for mesh, weld in self.todo if mesh.has_vertex_normals() and not weld.flat]
         self._set_normals({f"{mesh.id()}.vertex_normals": group_normals(mesh, weld) for mesh, weld in smooth})
         return self
@@ -249,8 +247,13 @@ class WeldedFaces:
         for key, value in reversed(saved):
             self.params[key] = value
             self.params.set_dirty(key)
-        self._update_faces(rebuild=self._rebuilt)  # the structure built for the welded faces must not outlive them
+        self._update_faces(rebuild=self._rebuilds)  # as going in: a structure built for the welded faces must not outlive them
         self._set_normals({key: value for key, value in saved if key.endswith(".vertex_normals")})
+
+    @property
+    def _rebuilds(self) -> bool:
+        """Whether the swaps rebuild the acceleration structure (both ways alike)."""
+        return self.indirect or any(weld.flat for _, weld in self.todo)
 
     def _update_faces(self, rebuild: bool) -> None:
         # A change of faces alone rebuilds Mitsuba's directed edges (its primary silhouettes);

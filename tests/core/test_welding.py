@@ -234,6 +234,7 @@ def test_a_pass_without_indirect_silhouettes_keeps_the_acceleration_structure(ex
 
     kept, rebuilt = scene(), scene()
     grad = step(kept)
+
     class Rebuilding(WeldedFaces):
         def __init__(self, params, meshes, indirect: bool = True) -> None:
             super().__init__(params, meshes, indirect=True)

@@ -114,18 +114,14 @@ def chamfer_distance(a: Mesh, b: Mesh, samples: int = 20000, squared: bool = Tru
         >>> round(chamfer_distance((v, f), (v + torch.tensor([0, 0, 0.5]), f)), 3)   # 0.5² + 0.5²
         0.5
     """
-    da, db = _directed(a, b, samples, seed)
-    if squared:
-        return float(np.mean(da**2) + np.mean(db**2))
-    return float(np.mean(da) + np.mean(db))
+    return _chamfer(*_directed(a, b, samples, seed), squared)
 
 
 def hausdorff_distance(a: Mesh, b: Mesh, samples: int = 20000, seed: int = 0) -> float:
     """The Hausdorff distance between two meshes, ``max(max_a min_b |a - b|, max_b min_a |b - a|)``,
     from ``samples`` area-uniform points of each (arguments as :func:`chamfer_distance`); a float.
     Its sampling error is about the spacing of the samples (not its square)."""
-    da, db = _directed(a, b, samples, seed)
-    return float(max(da.max(), db.max()))
+    return _hausdorff(*_directed(a, b, samples, seed))
 
 
 def chamfer_and_hausdorff(a: Mesh, b: Mesh, samples: int = 20000, seed: int = 0) -> tuple[float, float]:
@@ -133,4 +129,16 @@ def chamfer_and_hausdorff(a: Mesh, b: Mesh, samples: int = 20000, seed: int = 0)
     ``samples`` points of each mesh and one nearest-sample query each way: the same values as the
     two calls, at half their cost."""
     da, db = _directed(a, b, samples, seed)
-    return float(np.mean(da**2) + np.mean(db**2)), float(max(da.max(), db.max()))
+    return _chamfer(da, db, squared=True), _hausdorff(da, db)
+
+
+def _chamfer(da: np.ndarray, db: np.ndarray, squared: bool) -> float:
+    """The Chamfer distance of the two directed nearest-sample distance lists of :func:`_directed`."""
+    if squared:
+        return float(np.mean(da**2) + np.mean(db**2))
+    return float(np.mean(da) + np.mean(db))
+
+
+def _hausdorff(da: np.ndarray, db: np.ndarray) -> float:
+    """The Hausdorff distance of the two directed nearest-sample distance lists of :func:`_directed`."""
+    return float(max(da.max(), db.max()))

@@ -33,7 +33,7 @@ class StepTimer(pl.Callback):
         self._start = time.perf_counter()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        seconds = time.perf_counter() - self._start - getattr(pl_module, "diagnostic_seconds", 0.0)
+        seconds = time.perf_counter() - self._start - pl_module.diagnostic_seconds
         pl_module.step_metrics["seconds_per_step"] = seconds  # written with the step's row
         if trainer.world_size > 1:
             pl_module.log("seconds_per_step", seconds, on_step=True, on_epoch=False, batch_size=1)
